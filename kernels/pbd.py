@@ -1,0 +1,380 @@
+"""XPBD kernels: prediction, constraint projection, velocity update.
+
+Notation follows Macklin, Müller & Chentanez, "XPBD: Position-Based Simulation of Compliant
+Constrained Dynamics" (MIG 2016), cited below as [XPBD], and Müller et al., "Position Based
+Dynamics" (2007), cited as [PBD]. For one constraint C(x) with compliance alpha and Lagrange
+multiplier lambda, one projection is ([XPBD] Eq. 18 with the Rayleigh damping of Eq. 26):
+
+    alpha_t = alpha / h^2                       (h: substep [s])
+    gamma   = beta / h                          (beta: stiffness-proportional Rayleigh damping [s])
+    dlambda = (-C - alpha_t * lambda - gamma * grad C . (x - x_n))
+              / ((1 + gamma) * sum_i w_i |grad_i C|^2 + alpha_t)
+    x_i    += w_i * grad_i C * dlambda,     lambda += dlambda
+
+w_i = 1/m_i is the inverse mass (0 for pinned and kinematic particles). Every correction is
+weighted by w_i and every constraint below is invariant under translation and rotation, so one
+projection changes neither linear nor angular momentum.
+
+Parallel projection is race-free because constraints are coloured (no two constraints of one
+colour share a particle; see ``wsim.pbd.colouring``) and each launch covers one colour,
+starting at ``offset`` in the colour-sorted arrays. Positions and multipliers are float32
+(bandwidth); the global volume sums are accumulated in float64 because they add up
+O(N) terms of alternating sign.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+
+@wp.func
+def xpbd_delta_lambda(
+    C: float, lam: float, w_grad2: float, grad_dot_dx: float, compliance: float, beta: float, h: float
+) -> float:
+    """Multiplier increment of [XPBD] Eq. 18 with Rayleigh damping (Eq. 26); see module docstring.
+
+    [XPBD] writes gamma = alpha_t beta_t / h with beta_t = h^2 c for a damping coefficient c; for
+    stiffness-proportional Rayleigh damping c = beta k = beta / alpha, so gamma = beta / h: a mode
+    of angular frequency omega gets the damping ratio beta omega / 2, for every constraint type.
+    """
+    alpha_t = compliance / (h * h)
+    gamma = beta / h
+    denom = (1.0 + gamma) * w_grad2 + alpha_t
+    if denom <= 0.0:
+        return 0.0
+    return (-C - alpha_t * lam - gamma * grad_dot_dx) / denom
+
+
+@wp.kernel
+def predict_positions(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    x_prev: wp.array(dtype=wp.vec3),
+    x_pred: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    gravity: wp.vec3,
+    drag: float,
+    h: float,
+):
+    """[PBD] Alg. 1 lines 5-7: v += h g (times the drag decay exp(-drag h)); x_prev = x; x += h v.
+
+    The predicted position is kept in ``x_pred`` (see ``update_velocities``). Particles with
+    w = 0 (pinned, kinematic) keep their position and get v = 0 here; kinematic targets are
+    written afterwards by ``set_kinematic_targets``.
+    """
+    i = wp.tid()
+    xi = x[i]
+    x_prev[i] = xi
+    if inv_mass[i] == 0.0:
+        v[i] = wp.vec3(0.0)
+        x_pred[i] = xi
+        return
+    vi = (v[i] + gravity * h) * wp.exp(-drag * h)
+    v[i] = vi
+    xn = xi + vi * h
+    x[i] = xn
+    x_pred[i] = xn
+
+
+@wp.kernel
+def set_kinematic_targets(
+    x: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=int),
+    targets: wp.array(dtype=wp.vec3),
+    offset: int,
+):
+    """Write the kinematic handle targets of one substep: x[indices[k]] = targets[offset + k]."""
+    k = wp.tid()
+    x[indices[k]] = targets[offset + k]
+
+
+@wp.kernel
+def solve_distance(
+    x: wp.array(dtype=wp.vec3),
+    x_prev: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    pairs: wp.array(dtype=wp.vec2i),
+    rest: wp.array(dtype=float),
+    compliance: wp.array(dtype=float),
+    lam: wp.array(dtype=float),
+    offset: int,
+    beta: float,
+    h: float,
+):
+    """Edge stretch, [PBD] Eq. 10: C = |x_i - x_j| - L0, grad_i C = n, grad_j C = -n.
+
+    Compliance [m/N] (the inverse of a spring stiffness k [N/m]).
+    """
+    c = wp.tid() + offset
+    i = pairs[c][0]
+    j = pairs[c][1]
+    wi = inv_mass[i]
+    wj = inv_mass[j]
+    if wi + wj == 0.0:
+        return
+    d = x[i] - x[j]
+    length = wp.length(d)
+    if length < 1.0e-12:
+        return
+    n = d / length
+    C = length - rest[c]
+    grad_dot_dx = wp.dot(n, (x[i] - x_prev[i]) - (x[j] - x_prev[j]))
+    dl = xpbd_delta_lambda(C, lam[c], wi + wj, grad_dot_dx, compliance[c], beta, h)
+    lam[c] = lam[c] + dl
+    x[i] = x[i] + n * (wi * dl)
+    x[j] = x[j] - n * (wj * dl)
+
+
+@wp.func
+def dihedral_angle(w1: wp.vec3, w2: wp.vec3, e0: wp.vec3, e1: wp.vec3) -> float:
+    """Signed dihedral angle [rad] of the hinge (e0, e1) between faces (e0, e1, w1) and (e1, e0, w2).
+
+    theta = atan2((n1^ x n2^) . e^, n1^ . n2^): 0 for a flat hinge, in (-pi, pi].
+    """
+    e = e1 - e0
+    n1 = wp.cross(e, w1 - e0)
+    n2 = wp.cross(e0 - e1, w2 - e1)
+    n1h = wp.normalize(n1)
+    n2h = wp.normalize(n2)
+    return wp.atan2(wp.dot(wp.cross(n1h, n2h), wp.normalize(e)), wp.dot(n1h, n2h))
+
+
+@wp.kernel
+def solve_bending(
+    x: wp.array(dtype=wp.vec3),
+    x_prev: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    hinges: wp.array(dtype=wp.vec4i),
+    rest: wp.array(dtype=float),
+    compliance: wp.array(dtype=float),
+    lam: wp.array(dtype=float),
+    offset: int,
+    beta: float,
+    h: float,
+):
+    """Dihedral bending, [PBD] §4.2 with the angle gradient of Bridson et al. (SCA 2003):
+
+    C = theta - theta0 (wrapped to (-pi, pi]); with E = e1 - e0, n1 = E x (w1 - e0),
+    n2 = (e0 - e1) x (w2 - e1), and t_k = (w_k - e0).E / |E|^2:
+        grad_w1 = -|E| n1/|n1|^2,  grad_w2 = -|E| n2/|n2|^2,
+        grad_e0 = -((1 - t1) grad_w1 + (1 - t2) grad_w2),  grad_e1 = -(t1 grad_w1 + t2 grad_w2).
+    Compliance [rad/(N m)] (the inverse of a hinge stiffness).
+    """
+    c = wp.tid() + offset
+    ids = hinges[c]
+    a = ids[0]
+    b = ids[1]
+    p = ids[2]
+    q = ids[3]
+    wa = inv_mass[a]
+    wb = inv_mass[b]
+    wp_ = inv_mass[p]
+    wq = inv_mass[q]
+    if wa + wb + wp_ + wq == 0.0:
+        return
+    w1 = x[a]
+    w2 = x[b]
+    e0 = x[p]
+    e1 = x[q]
+    E = e1 - e0
+    len2 = wp.dot(E, E)
+    n1 = wp.cross(E, w1 - e0)
+    n2 = wp.cross(e0 - e1, w2 - e1)
+    n1sq = wp.dot(n1, n1)
+    n2sq = wp.dot(n2, n2)
+    if len2 < 1.0e-20 or n1sq < 1.0e-24 or n2sq < 1.0e-24:
+        return
+    elen = wp.sqrt(len2)
+    g1 = n1 * (-elen / n1sq)
+    g2 = n2 * (-elen / n2sq)
+    t1 = wp.dot(w1 - e0, E) / len2
+    t2 = wp.dot(w2 - e0, E) / len2
+    g3 = -((1.0 - t1) * g1 + (1.0 - t2) * g2)
+    g4 = -(t1 * g1 + t2 * g2)
+    C = dihedral_angle(w1, w2, e0, e1) - rest[c]
+    # keep C in (-pi, pi] so a hinge that passes through +-pi is pulled the short way round
+    if C > wp.pi:
+        C = C - 2.0 * wp.pi
+    if C < -wp.pi:
+        C = C + 2.0 * wp.pi
+    w_grad2 = wa * wp.dot(g1, g1) + wb * wp.dot(g2, g2) + wp_ * wp.dot(g3, g3) + wq * wp.dot(g4, g4)
+    grad_dot_dx = (
+        wp.dot(g1, w1 - x_prev[a])
+        + wp.dot(g2, w2 - x_prev[b])
+        + wp.dot(g3, e0 - x_prev[p])
+        + wp.dot(g4, e1 - x_prev[q])
+    )
+    dl = xpbd_delta_lambda(C, lam[c], w_grad2, grad_dot_dx, compliance[c], beta, h)
+    lam[c] = lam[c] + dl
+    x[a] = w1 + g1 * (wa * dl)
+    x[b] = w2 + g2 * (wb * dl)
+    x[p] = e0 + g3 * (wp_ * dl)
+    x[q] = e1 + g4 * (wq * dl)
+
+
+@wp.kernel
+def solve_tet_volume(
+    x: wp.array(dtype=wp.vec3),
+    x_prev: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    tets: wp.array(dtype=wp.vec4i),
+    rest: wp.array(dtype=float),
+    compliance: wp.array(dtype=float),
+    lam: wp.array(dtype=float),
+    offset: int,
+    beta: float,
+    h: float,
+):
+    """Per-tetrahedron volume, [PBD] Eq. 12: C = (1/6) (x1-x0).((x2-x0) x (x3-x0)) - V0.
+
+    grad_1 = (x2-x0)x(x3-x0)/6, grad_2 = (x3-x0)x(x1-x0)/6, grad_3 = (x1-x0)x(x2-x0)/6,
+    grad_0 = -(grad_1 + grad_2 + grad_3). Compliance [m^3/Pa] (V0/K for bulk modulus K).
+    """
+    c = wp.tid() + offset
+    ids = tets[c]
+    i0 = ids[0]
+    i1 = ids[1]
+    i2 = ids[2]
+    i3 = ids[3]
+    w0 = inv_mass[i0]
+    w1 = inv_mass[i1]
+    w2 = inv_mass[i2]
+    w3 = inv_mass[i3]
+    if w0 + w1 + w2 + w3 == 0.0:
+        return
+    x0 = x[i0]
+    d1 = x[i1] - x0
+    d2 = x[i2] - x0
+    d3 = x[i3] - x0
+    g1 = wp.cross(d2, d3) / 6.0
+    g2 = wp.cross(d3, d1) / 6.0
+    g3 = wp.cross(d1, d2) / 6.0
+    g0 = -(g1 + g2 + g3)
+    C = wp.dot(d1, g1) - rest[c]
+    w_grad2 = w0 * wp.dot(g0, g0) + w1 * wp.dot(g1, g1) + w2 * wp.dot(g2, g2) + w3 * wp.dot(g3, g3)
+    grad_dot_dx = (
+        wp.dot(g0, x0 - x_prev[i0])
+        + wp.dot(g1, x[i1] - x_prev[i1])
+        + wp.dot(g2, x[i2] - x_prev[i2])
+        + wp.dot(g3, x[i3] - x_prev[i3])
+    )
+    dl = xpbd_delta_lambda(C, lam[c], w_grad2, grad_dot_dx, compliance[c], beta, h)
+    lam[c] = lam[c] + dl
+    x[i0] = x0 + g0 * (w0 * dl)
+    x[i1] = x[i1] + g1 * (w1 * dl)
+    x[i2] = x[i2] + g2 * (w2 * dl)
+    x[i3] = x[i3] + g3 * (w3 * dl)
+
+
+@wp.kernel
+def volume_gradient(
+    x: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    faces: wp.array(dtype=wp.vec3i),
+    vertex_face_start: wp.array(dtype=int),
+    vertex_faces: wp.array(dtype=int),
+    grad: wp.array(dtype=wp.vec3),
+    sums: wp.array(dtype=wp.float64),
+):
+    """Global enclosed volume of a closed surface and its gradient, one thread per vertex.
+
+    V = (1/6) sum_f (x_a - o).((x_b - o) x (x_c - o)); grad_i V = (1/6) sum_{f containing i}
+    (x_b - o) x (x_c - o) with (i, b, c) the face read cyclically from i. o = x[0] removes the
+    float32 cancellation of a body far from the origin (V and its gradient do not depend on o
+    for a closed surface). V is homogeneous of degree 3 in (x - o), so V = (1/3) sum_i (x_i - o).grad_i V:
+    each thread adds its share, with w_i |grad_i V|^2, to sums = [V, sum w|grad V|^2] in float64.
+    """
+    i = wp.tid()
+    o = x[0]
+    g = wp.vec3(0.0)
+    for k in range(vertex_face_start[i], vertex_face_start[i + 1]):
+        f = faces[vertex_faces[k]]
+        b = f[1]
+        c = f[2]
+        if f[1] == i:
+            b = f[2]
+            c = f[0]
+        elif f[2] == i:
+            b = f[0]
+            c = f[1]
+        g = g + wp.cross(x[b] - o, x[c] - o)
+    g = g / 6.0
+    grad[i] = g
+    wp.atomic_add(sums, 0, wp.float64(wp.dot(x[i] - o, g)) / wp.float64(3.0))
+    wp.atomic_add(sums, 1, wp.float64(inv_mass[i] * wp.dot(g, g)))
+
+
+@wp.kernel
+def volume_multiplier(
+    sums: wp.array(dtype=wp.float64),
+    target_volume: wp.float64,
+    compliance: wp.float64,
+    beta: wp.float64,
+    h: wp.float64,
+    lam: wp.array(dtype=wp.float64),
+    dlam: wp.array(dtype=wp.float64),
+):
+    """One thread: dlambda of the global volume constraint C = V - V_target ([XPBD] Eq. 18).
+
+    No Rayleigh term here: the rate of the whole-body volume is damped by the edge and tet
+    constraints already, and a global damping term would need one more reduction.
+    Compliance [m^3/Pa] (V0/K for bulk modulus K).
+    """
+    alpha_t = compliance / (h * h)
+    C = sums[0] - target_volume
+    denom = sums[1] + alpha_t
+    d = wp.float64(0.0)
+    if denom > wp.float64(0.0):
+        d = (-C - alpha_t * lam[0]) / denom
+    lam[0] = lam[0] + d
+    dlam[0] = d
+    # the sums are reused by the next iteration: clear them here, inside the same graph
+    sums[0] = wp.float64(0.0)
+    sums[1] = wp.float64(0.0)
+
+
+@wp.kernel
+def volume_apply(
+    x: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    grad: wp.array(dtype=wp.vec3),
+    dlam: wp.array(dtype=wp.float64),
+):
+    """x_i += w_i grad_i V dlambda for the global volume constraint."""
+    i = wp.tid()
+    x[i] = x[i] + grad[i] * (inv_mass[i] * float(dlam[0]))
+
+
+@wp.kernel
+def update_velocities(
+    x: wp.array(dtype=wp.vec3),
+    x_pred: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    inv_h: float,
+):
+    """[PBD] Alg. 1 line 12, v = (x - x_prev) / h, evaluated as v_pred + (x - x_pred) / h.
+
+    The two are equal in exact arithmetic (x_pred = x_prev + h v_pred), but in float32 the first
+    divides the rounding error of every position update (ulp(x) / h: 6e-5 m/s at 5 m and
+    h = 8 ms) into the velocity, a bias that made free fall 2 % off after one second; the second
+    divides only the constraint and contact corrections. Kinematic particles get their handle
+    velocity (v_pred = 0, x_pred = x_prev).
+    """
+    i = wp.tid()
+    v[i] = v[i] + (x[i] - x_pred[i]) * inv_h
+
+
+@wp.kernel
+def check_finite(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    flags: wp.array(dtype=int),
+):
+    """flags[0] = 1 if any position is NaN/Inf, flags[1] = 1 if any velocity is (benign same-value writes)."""
+    i = wp.tid()
+    xi = x[i]
+    vi = v[i]
+    if not (wp.isfinite(xi[0]) and wp.isfinite(xi[1]) and wp.isfinite(xi[2])):
+        flags[0] = 1
+    if not (wp.isfinite(vi[0]) and wp.isfinite(vi[1]) and wp.isfinite(vi[2])):
+        flags[1] = 1

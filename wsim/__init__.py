@@ -1,0 +1,51 @@
+"""wsim: physics simulation for technical animators, on NVIDIA Warp, exported as animated USD.
+
+The scene API::
+
+    import wsim
+    world = wsim.World(fps=30, gravity=(0.0, -9.81, 0.0), device=None)
+    world.add_collider(wsim.GroundPlane(height=0.0, friction=0.5))
+    body = world.add(wsim.PbdBody(mesh, material=wsim.ElasticMaterial(E=1e5, nu=0.3, rho=1000.0)))
+    world.run(frames=90, out="out.usda")
+"""
+
+from wsim.body import Body
+from wsim.colliders import Collider, GroundPlane, MeshCollider
+from wsim.errors import (
+    InvalidMaterial,
+    InvalidMesh,
+    InvalidParameter,
+    OutputError,
+    SimulationDiverged,
+    WsimError,
+)
+from wsim.handles import Handle
+from wsim.materials import ElasticMaterial
+from wsim.pbd.body import PbdBody
+from wsim.world import RunSummary, World
+
+try:
+    from importlib.metadata import version as _version
+
+    __version__ = _version("wsim")
+except Exception:  # running from a source tree that is not installed
+    __version__ = "0.0.0+unknown"
+
+__all__ = [
+    "World",
+    "RunSummary",
+    "Body",
+    "PbdBody",
+    "ElasticMaterial",
+    "Collider",
+    "GroundPlane",
+    "MeshCollider",
+    "Handle",
+    "WsimError",
+    "InvalidMesh",
+    "InvalidMaterial",
+    "InvalidParameter",
+    "OutputError",
+    "SimulationDiverged",
+    "__version__",
+]

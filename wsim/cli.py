@@ -1,0 +1,106 @@
+"""Command line: ``wsim run SCENE.py -o OUT.usda`` and ``wsim info``.
+
+A scene is a plain Python file that defines ``build(mesh=None, device=None) -> wsim.World`` and,
+optionally, ``FRAMES`` (its default frame count). It can also run standalone:
+``python scenes/NAME.py -o out.usda`` through ``scene_main``, which takes the same options.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import runpy
+import sys
+from pathlib import Path
+from typing import Callable, Sequence
+
+from wsim.errors import WsimError
+
+DEFAULT_FRAMES = 90
+
+
+def _add_run_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("-o", "--out", help="output USD file (.usda, .usdc or .usd); default: <scene>.usda")
+    p.add_argument("--frames", type=int, default=None, help="frames to simulate (default: the scene's FRAMES)")
+    p.add_argument("--device", default=None, help="cpu, cuda, cuda:N (default: cuda:0 if present, else cpu)")
+    p.add_argument("--up-axis", default=None, choices=["Y", "Z", "y", "z"], help="up axis of the USD stage (Z for Blender)")
+    p.add_argument("--mesh", default=None, help="path of a mesh file to use instead of the scene's procedural shape")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+
+
+def _run(build: Callable[..., object], frames_default: int, name: str, args: argparse.Namespace) -> int:
+    from wsim.world import World
+
+    out = args.out or f"{name}.usda"
+    try:
+        world = build(mesh=args.mesh, device=args.device)
+        if not isinstance(world, World):
+            print(f"wsim: scene '{name}': build() must return a wsim.World, got {type(world).__name__}", file=sys.stderr)
+            return 2
+        frames = args.frames if args.frames is not None else frames_default
+        summary = world.run(frames, out, up_axis=args.up_axis.upper() if args.up_axis else None, progress=not args.no_progress)
+    except WsimError as exc:
+        print(f"wsim: error: {exc}", file=sys.stderr)
+        if Path(out).exists():
+            print(f"wsim: frames computed before the error are in {out}", file=sys.stderr)
+        return 1
+    print(summary)
+    return 0
+
+
+def _load_scene(path: str) -> tuple[Callable[..., object], int, str]:
+    p = Path(path)
+    if not p.is_file():
+        raise SystemExit(f"wsim: scene file '{path}' not found")
+    ns = runpy.run_path(str(p), run_name="wsim_scene")
+    build = ns.get("build")
+    if not callable(build):
+        raise SystemExit(f"wsim: scene '{path}' must define build(mesh=None, device=None) -> wsim.World")
+    return build, int(ns.get("FRAMES", DEFAULT_FRAMES)), p.stem
+
+
+def info() -> str:
+    import warp as wp
+
+    import wsim
+    from wsim.cache import default_cache_dir
+    from wsim.device import available_devices, quiet_warp
+
+    quiet_warp()
+    lines = [
+        f"wsim {wsim.__version__}",
+        f"warp {wp.__version__}",
+        f"python {platform.python_version()} on {platform.system()} {platform.machine()}",
+        f"devices: {', '.join(available_devices())}",
+        f"cache: {default_cache_dir()}",
+    ]
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="wsim", description="wsim: physics simulation exported as animated USD")
+    sub = parser.add_subparsers(dest="command", required=True)
+    run = sub.add_parser("run", help="run a scene script and write USD")
+    run.add_argument("scene", help="path of a scene script (defines build(mesh=None, device=None))")
+    _add_run_options(run)
+    sub.add_parser("info", help="print versions, devices and the cache folder")
+    args = parser.parse_args(argv)
+    if args.command == "info":
+        print(info())
+        return 0
+    from wsim.device import quiet_warp
+
+    quiet_warp()
+    build, frames, name = _load_scene(args.scene)
+    return _run(build, frames, name, args)
+
+
+def scene_main(build: Callable[..., object], frames: int = DEFAULT_FRAMES, name: str | None = None) -> None:
+    """Entry point of a scene script run standalone: ``python scenes/NAME.py [-o OUT] [--frames N] ...``."""
+    from wsim.device import quiet_warp
+
+    quiet_warp()
+    scene = name or Path(sys.argv[0]).stem
+    parser = argparse.ArgumentParser(prog=scene, description=f"run the wsim scene '{scene}'")
+    _add_run_options(parser)
+    raise SystemExit(_run(build, frames, scene, parser.parse_args()))

@@ -1,0 +1,490 @@
+"""PbdBody: an XPBD soft body (surface-only or tetrahedral) that a World steps and exports.
+
+Per substep of length h (Macklin et al., "Small Steps in Physics Simulation", 2019: many
+substeps with few iterations beat few substeps with many iterations at equal cost):
+
+1. predict x from gravity and velocity, write kinematic handle targets;
+2. ``iterations`` times: project every constraint family colour by colour, the global volume
+   constraint, then contacts with the World's colliders (with friction);
+3. v = (x - x_prev) / h.
+
+On CUDA the launches of a whole frame are captured once into a CUDA graph and replayed, so a
+frame costs one launch from Python; per-frame inputs (handle targets, collider poses) are copied
+into fixed device buffers before each replay. On the CPU (single-threaded Warp kernels) each
+family is one launch over all its colour-sorted constraints, which performs exactly the same
+updates in the same order as one launch per colour.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import warp as wp
+
+from wsim import mesh as wmesh
+from wsim.body import Body
+from wsim.cache import OperatorCache
+from wsim.colliders import Collider, GroundPlane, MeshCollider
+from wsim.errors import InvalidMesh, InvalidParameter, SimulationDiverged
+from wsim.handles import Handle
+from wsim.kernels import contact as kc
+from wsim.kernels import pbd as kp
+from wsim.materials import ElasticMaterial
+from wsim.pbd.model import MODEL_FORMAT_VERSION, ConstraintFamily, PbdModel, build_model
+
+_KERNELS = {"distance": kp.solve_distance, "bending": kp.solve_bending, "tet_volume": kp.solve_tet_volume}
+_VEC = {2: wp.vec2i, 4: wp.vec4i}
+
+
+@dataclass
+class _DeviceFamily:
+    kind: str
+    offsets: np.ndarray
+    indices: wp.array
+    rest: wp.array
+    compliance: wp.array
+    lam: wp.array
+
+
+@dataclass
+class _DeviceMeshCollider:
+    collider: MeshCollider
+    mesh: wp.Mesh
+    transforms: wp.array  # (S + 1,) mat44 on device
+    inverses: wp.array
+    host_transforms: np.ndarray  # (S + 1, 4, 4) float32 staging
+    host_inverses: np.ndarray
+    max_dist: float
+
+
+def _positive_int(value: int, what: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise InvalidParameter(f"{what} = {value!r} must be an integer >= 1")
+    return int(value)
+
+
+class PbdBody(Body):
+    """A soft body simulated with XPBD.
+
+    Args:
+        mesh: closed surface, a ``trimesh.Trimesh`` or a (vertices, faces) pair [m].
+        material: elastic material (default: E = 1e5 Pa, nu = 0.3, rho = 1000 kg/m^3).
+        name: USD prim name.
+        position: translation applied to the mesh (and to ``interior_points``) [m].
+        velocity, angular_velocity: initial motion about the centre of mass [m/s], [rad/s].
+        tets: None (surface-only body), "auto" (tetrahedralize the surface), or (T, 4) indices into
+            the mesh vertices followed by ``interior_points``.
+        interior_points: (Q, 3) extra particles used by ``tets`` [m].
+        substeps: substeps per frame; or give ``dt`` [s], and the substep is the largest h <= dt
+            that divides the frame.
+        iterations: constraint iterations per substep.
+        stretch, bending, volume, tet_volume: constraint families (defaults: bending and global
+            volume for surface-only bodies; tet edges and tet volumes for tet bodies).
+        thickness: membrane/plate thickness of a surface-only body [m] (see ``wsim.pbd.model``).
+        inflation: target volume / rest volume of the global volume constraint.
+        stretch_compliance, bend_compliance, volume_compliance, tet_compliance: override the
+            material-derived XPBD compliances.
+        springs, spring_compliance: extra distance constraints (S, 2) and their compliance [m/N].
+        damping: stiffness-proportional Rayleigh damping beta [s] of every constraint ([XPBD] Eq. 26);
+            it damps deformation only, so it conserves linear and angular momentum.
+        drag: air drag [1/s] on absolute velocities (does not conserve momentum; default 0).
+        mass: total mass [kg] overriding rho * volume.
+        pinned: particle indices held at their initial position.
+        handles: kinematic ``Handle`` s.
+        contact_margin: distance kept from colliders [m] (default: 10 % of the mean edge length).
+        cache: store/load the built model through ``wsim.cache`` (True, False or an ``OperatorCache``).
+        use_graph: replay each frame as a CUDA graph on CUDA devices.
+    """
+
+    def __init__(
+        self,
+        mesh,
+        material: ElasticMaterial | None = None,
+        *,
+        name: str = "pbd_body",
+        position: Sequence[float] = (0.0, 0.0, 0.0),
+        velocity: Sequence[float] = (0.0, 0.0, 0.0),
+        angular_velocity: Sequence[float] = (0.0, 0.0, 0.0),
+        tets: np.ndarray | str | None = None,
+        interior_points: np.ndarray | None = None,
+        substeps: int | None = None,
+        dt: float | None = None,
+        iterations: int = 2,
+        stretch: bool = True,
+        bending: bool | None = None,
+        volume: bool | None = None,
+        tet_volume: bool = True,
+        thickness: float | None = None,
+        inflation: float = 1.0,
+        stretch_compliance: float | None = None,
+        bend_compliance: float | None = None,
+        volume_compliance: float | None = None,
+        tet_compliance: float | None = None,
+        springs: np.ndarray | None = None,
+        spring_compliance: float = 0.0,
+        damping: float = 1.0e-3,
+        drag: float = 0.0,
+        mass: float | None = None,
+        pinned: Sequence[int] | np.ndarray | None = None,
+        handles: Sequence[Handle] = (),
+        contact_margin: float | None = None,
+        cache: bool | OperatorCache = True,
+        use_graph: bool = True,
+    ) -> None:
+        super().__init__(name, velocity, angular_velocity)
+        self.material = material if material is not None else ElasticMaterial(E=1.0e5, nu=0.3, rho=1000.0)
+        if not isinstance(self.material, ElasticMaterial):
+            raise InvalidParameter(f"body '{name}': material must be a wsim.ElasticMaterial")
+        vertices, faces = wmesh.surface_arrays(mesh, name=f"body '{name}'")
+        closed = len(faces) > 0
+        try:
+            wmesh.check_surface(vertices, faces, name=f"body '{name}'", closed=closed)
+        except InvalidMesh:
+            if mass is None or volume:
+                raise
+            # an open surface is allowed when nothing needs an enclosed volume
+            wmesh.check_surface(vertices, faces, name=f"body '{name}'", closed=False)
+            closed = False
+
+        if substeps is not None and dt is not None:
+            raise InvalidParameter(f"body '{name}': give substeps or dt, not both")
+        if dt is not None:
+            dt = float(dt)
+            if not math.isfinite(dt) or dt <= 0.0:
+                raise InvalidParameter(f"body '{name}': dt = {dt} s must be > 0")
+        self.dt = dt
+        self.substeps = _positive_int(substeps, f"body '{name}': substeps") if substeps is not None else None
+        if dt is None and substeps is None:
+            self.substeps = 10
+        self.iterations = _positive_int(iterations, f"body '{name}': iterations")
+        for what, val in (("damping", damping), ("drag", drag)):
+            if not math.isfinite(float(val)) or float(val) < 0.0:
+                raise InvalidParameter(f"body '{name}': {what} = {val} must be >= 0")
+        self.damping = float(damping)
+        self.drag = float(drag)
+
+        offset = np.asarray(position, dtype=np.float64)
+        if offset.shape != (3,) or not np.all(np.isfinite(offset)):
+            raise InvalidParameter(f"body '{name}': position must be 3 finite numbers")
+        points = vertices
+        if interior_points is not None:
+            q = np.asarray(interior_points, dtype=np.float64).reshape(-1, 3)
+            if not np.all(np.isfinite(q)):
+                raise InvalidParameter(f"body '{name}': interior_points must be finite")
+            points = np.concatenate([vertices, q])
+        if isinstance(tets, str):
+            if tets != "auto":
+                raise InvalidParameter(f"body '{name}': tets must be None, 'auto' or a (T, 4) array")
+            if interior_points is not None:
+                raise InvalidParameter(f"body '{name}': tets='auto' makes its own interior points")
+            points, tets = wmesh.tetrahedralize(vertices, faces, name=f"body '{name}'")
+        has_tets = tets is not None and len(tets) > 0
+        options = dict(
+            stretch=bool(stretch),
+            bending=(not has_tets) if bending is None else bool(bending),
+            volume=(closed and not has_tets) if volume is None else bool(volume),
+            tet_volume=bool(tet_volume),
+            thickness=thickness,
+            inflation=float(inflation),
+            stretch_compliance=stretch_compliance,
+            bend_compliance=bend_compliance,
+            volume_compliance=volume_compliance,
+            tet_compliance=tet_compliance,
+            spring_compliance=float(spring_compliance),
+            mass=mass,
+            closed=closed,
+        )
+        tets_arr = None if tets is None else np.asarray(tets, dtype=np.int32).reshape(-1, 4)
+        springs_arr = None if springs is None else np.asarray(springs, dtype=np.int32).reshape(-1, 2)
+
+        def build() -> dict[str, np.ndarray]:
+            return build_model(
+                points, faces, len(vertices), self.material, tets=tets_arr, springs=springs_arr, name=name, **options
+            ).to_arrays()
+
+        if cache is False:
+            arrays = build()
+        else:
+            store = cache if isinstance(cache, OperatorCache) else OperatorCache()
+            inputs = {"points": points, "faces": faces}
+            if tets_arr is not None:
+                inputs["tets"] = tets_arr
+            if springs_arr is not None:
+                inputs["springs"] = springs_arr
+            arrays = store.get_or_build(
+                "pbd_model",
+                arrays=inputs,
+                params={"material": self.material.as_key(), **options},
+                version=MODEL_FORMAT_VERSION,
+                build=build,
+            )
+        self.model: PbdModel = PbdModel.from_arrays(arrays)
+        self._rest = self.model.rest_points + offset
+        n = self.model.n_particles
+
+        kinematic = np.zeros(n, dtype=bool)
+        self.pinned = np.zeros(0, dtype=np.int64)
+        if pinned is not None:
+            self.pinned = np.unique(np.asarray(pinned, dtype=np.int64).ravel())
+            if self.pinned.size and (self.pinned.min() < 0 or self.pinned.max() >= n):
+                raise InvalidParameter(f"body '{name}': pinned indices must lie in [0, {n - 1}]")
+            kinematic[self.pinned] = True
+        self.handles = tuple(handles)
+        for hdl in self.handles:
+            if not isinstance(hdl, Handle):
+                raise InvalidParameter(f"body '{name}': handles must be wsim.Handle objects")
+            if hdl.vertices.min() < 0 or hdl.vertices.max() >= n:
+                raise InvalidParameter(f"body '{name}': handle '{hdl.name}' indices must lie in [0, {n - 1}]")
+            if np.any(kinematic[hdl.vertices]):
+                raise InvalidParameter(f"body '{name}': handle '{hdl.name}' overlaps pinned vertices or another handle")
+            kinematic[hdl.vertices] = True
+        self._kinematic_mask = kinematic
+        self._handle_idx = (
+            np.concatenate([h.vertices for h in self.handles]) if self.handles else np.zeros(0, dtype=np.int64)
+        )
+        if np.all(kinematic):
+            raise InvalidParameter(f"body '{name}': every particle is pinned or driven; nothing to simulate")
+
+        edges = wmesh.edges(faces) if len(faces) else np.zeros((0, 2), dtype=np.int32)
+        mean_edge = (
+            float(np.mean(np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1))) if len(edges) else 0.0
+        )
+        self.contact_margin = 0.1 * mean_edge if contact_margin is None else float(contact_margin)
+        if not math.isfinite(self.contact_margin) or self.contact_margin < 0.0:
+            raise InvalidParameter(f"body '{name}': contact_margin = {contact_margin} m must be >= 0")
+        self.use_graph = bool(use_graph)
+        # CPU dispatch: one serial launch per family instead of one per colour (same result, fewer launches)
+        self._cpu_serial_sweep = True
+        self._device: wp.Device | None = None
+
+    # ---------------------------------------------------------------- public read-outs
+    @property
+    def faces(self) -> np.ndarray:
+        return self.model.faces
+
+    @property
+    def masses(self) -> np.ndarray:
+        """(P,) particle masses [kg] (pinned and driven particles included)."""
+        return self.model.mass
+
+    @property
+    def rest_points(self) -> np.ndarray:
+        """(P, 3) rest positions in world space (mesh plus ``position``) [m]."""
+        return self._rest
+
+    def points(self) -> np.ndarray:
+        self._require_bound()
+        return self.x.numpy()[: self.model.n_surface].astype(np.float64)
+
+    def particles(self) -> np.ndarray:
+        """(P, 3) positions of every particle, interior ones included [m]."""
+        self._require_bound()
+        return self.x.numpy().astype(np.float64)
+
+    def velocities(self) -> np.ndarray:
+        """(P, 3) particle velocities [m/s]."""
+        self._require_bound()
+        return self.v.numpy().astype(np.float64)
+
+    def _require_bound(self) -> None:
+        if self._device is None:
+            raise InvalidParameter(f"body '{self.name}': add it to a World (world.add) before reading its state")
+
+    # ---------------------------------------------------------------- set-up
+    def substeps_for(self, frame_dt: float) -> int:
+        """Substeps this body takes to cover one frame of ``frame_dt`` seconds."""
+        if self.dt is not None:
+            return max(1, math.ceil(frame_dt / self.dt - 1e-9))
+        return int(self.substeps)  # type: ignore[arg-type]
+
+    def bind(self, device: wp.Device, gravity: np.ndarray, up: np.ndarray) -> None:
+        if self._device is not None:
+            raise InvalidParameter(f"body '{self.name}' already belongs to a World")
+        self._device = device
+        self._up = np.asarray(up, dtype=np.float64)
+        self._gravity = wp.vec3(*np.asarray(gravity, dtype=np.float32))
+        m = self.model
+        n = m.n_particles
+        mass = m.mass
+        inv_mass = np.where(self._kinematic_mask, 0.0, 1.0 / mass)
+
+        # initial state: rigid motion about the centre of mass of the free particles
+        free = ~self._kinematic_mask
+        com = (mass[free, None] * self._rest[free]).sum(0) / mass[free].sum()
+        v0 = self.initial_velocity + np.cross(self.initial_angular_velocity, self._rest - com)
+        v0[self._kinematic_mask] = 0.0
+
+        with wp.ScopedDevice(device):
+            self.x = wp.array(self._rest.astype(np.float32), dtype=wp.vec3)
+            self.v = wp.array(v0.astype(np.float32), dtype=wp.vec3)
+            self.x_prev = wp.zeros(n, dtype=wp.vec3)
+            self.x_pred = wp.zeros(n, dtype=wp.vec3)
+            self.inv_mass = wp.array(inv_mass.astype(np.float32), dtype=float)
+            self.flags = wp.zeros(2, dtype=int)
+            self._families = [self._upload_family(f) for f in m.families]
+            if m.volume is not None:
+                vol = m.volume
+                self._faces_d = wp.array(m.faces, dtype=wp.vec3i)
+                self._vf_start = wp.array(vol.vertex_face_start, dtype=int)
+                self._vf = wp.array(vol.vertex_faces, dtype=int)
+                self._vol_grad = wp.zeros(m.n_surface, dtype=wp.vec3)
+                self._vol_sums = wp.zeros(2, dtype=wp.float64)
+                self._vol_lam = wp.zeros(1, dtype=wp.float64)
+                self._vol_dlam = wp.zeros(1, dtype=wp.float64)
+            self._handle_idx_d = wp.array(self._handle_idx.astype(np.int32), dtype=int) if self.handles else None
+        self._planes: list[tuple[np.ndarray, GroundPlane]] = []
+        self._mesh_colliders_src: list[MeshCollider] = []
+        self._mesh_colliders: list[_DeviceMeshCollider] = []
+        self._layout: tuple[int, float] | None = None
+        self._graph = None
+        self._handle_targets_d: wp.array | None = None
+
+    def attach_colliders(self, colliders: Sequence[Collider]) -> None:
+        self._planes = [(c.resolved_normal(self._up), c) for c in colliders if isinstance(c, GroundPlane)]
+        self._mesh_colliders_src = [c for c in colliders if isinstance(c, MeshCollider)]
+        self._layout = None  # rebuild the per-frame buffers and the CUDA graph
+
+    def _upload_family(self, f: ConstraintFamily) -> _DeviceFamily:
+        return _DeviceFamily(
+            kind=f.kind,
+            offsets=f.offsets,
+            indices=wp.array(f.indices, dtype=_VEC[f.indices.shape[1]]),
+            rest=wp.array(f.rest.astype(np.float32), dtype=float),
+            compliance=wp.array(f.compliance.astype(np.float32), dtype=float),
+            lam=wp.zeros(f.count, dtype=float),
+        )
+
+    def _prepare_layout(self, substeps: int, h: float) -> None:
+        """(Re)allocate the per-frame input buffers for ``substeps`` substeps of ``h`` seconds."""
+        device = self._device
+        self._layout = (substeps, h)
+        self._graph = None
+        with wp.ScopedDevice(device):
+            if self.handles:
+                k = len(self._handle_idx)
+                self._handle_targets_d = wp.zeros(substeps * k, dtype=wp.vec3)
+                self._handle_targets_h = wp.zeros(substeps * k, dtype=wp.vec3, device="cpu", pinned=device.is_cuda)
+            self._mesh_colliders = []
+            for c in self._mesh_colliders_src:
+                self._mesh_colliders.append(
+                    _DeviceMeshCollider(
+                        collider=c,
+                        mesh=c.device_mesh(device),
+                        transforms=wp.zeros(substeps + 1, dtype=wp.mat44),
+                        inverses=wp.zeros(substeps + 1, dtype=wp.mat44),
+                        host_transforms=np.zeros((substeps + 1, 4, 4), dtype=np.float32),
+                        host_inverses=np.zeros((substeps + 1, 4, 4), dtype=np.float32),
+                        max_dist=2.0 * c.extent + 10.0 * self.contact_margin + 1.0,
+                    )
+                )
+
+    # ---------------------------------------------------------------- stepping
+    def advance(self, t0: float, t1: float) -> None:
+        frame_dt = t1 - t0
+        substeps = self.substeps_for(frame_dt)
+        h = frame_dt / substeps
+        if self._layout != (substeps, h):
+            self._prepare_layout(substeps, h)
+        self._upload_frame_inputs(t0, substeps, h)
+        device = self._device
+        if device.is_cuda and self.use_graph:
+            if self._graph is None:
+                # compile and load modules outside the capture, then record the frame once
+                wp.load_module(kp, device=device)
+                wp.load_module(kc, device=device)
+                with wp.ScopedCapture(device=device) as capture:
+                    self._launch_frame(substeps, h)
+                self._graph = capture.graph
+            wp.capture_launch(self._graph)
+        else:
+            self._launch_frame(substeps, h)
+
+    def _upload_frame_inputs(self, t0: float, substeps: int, h: float) -> None:
+        """Copy this frame's handle targets and collider poses into the fixed device buffers."""
+        if self.handles:
+            rest = self._rest
+            host = self._handle_targets_h.numpy()
+            k = len(self._handle_idx)
+            for s in range(substeps):
+                t = t0 + (s + 1) * h
+                host[s * k : (s + 1) * k] = np.concatenate([hd.targets(t, rest[hd.vertices]) for hd in self.handles])
+            wp.copy(self._handle_targets_d, self._handle_targets_h)
+        for dc in self._mesh_colliders:
+            for s in range(substeps + 1):
+                M = dc.collider.matrix(t0 + s * h)
+                dc.host_transforms[s] = M
+                dc.host_inverses[s] = np.linalg.inv(M)
+            dc.transforms.assign(dc.host_transforms)
+            dc.inverses.assign(dc.host_inverses)
+
+    def _launch_family(self, fam: _DeviceFamily, h: float) -> None:
+        kernel = _KERNELS[fam.kind]
+        args = [self.x, self.x_prev, self.inv_mass, fam.indices, fam.rest, fam.compliance, fam.lam]
+        if self._device.is_cpu and self._cpu_serial_sweep:
+            # serial sweep over the colour-sorted array: same updates, same order, one launch
+            wp.launch(kernel, dim=int(fam.offsets[-1]), inputs=[*args, 0, self.damping, h])
+            return
+        for c in range(len(fam.offsets) - 1):
+            start, stop = int(fam.offsets[c]), int(fam.offsets[c + 1])
+            wp.launch(kernel, dim=stop - start, inputs=[*args, start, self.damping, h])
+
+    def _launch_frame(self, substeps: int, h: float) -> None:
+        m = self.model
+        n = m.n_particles
+        k = len(self._handle_idx)
+        for s in range(1, substeps + 1):
+            wp.launch(kp.predict_positions, dim=n, inputs=[self.x, self.v, self.x_prev, self.x_pred, self.inv_mass, self._gravity, self.drag, h])
+            if self.handles:
+                wp.launch(kp.set_kinematic_targets, dim=k, inputs=[self.x, self._handle_idx_d, self._handle_targets_d, (s - 1) * k])
+            for fam in self._families:
+                fam.lam.zero_()
+            if m.volume is not None:
+                self._vol_lam.zero_()
+            for _ in range(self.iterations):
+                for fam in self._families:
+                    self._launch_family(fam, h)
+                if m.volume is not None:
+                    vol = m.volume
+                    wp.launch(
+                        kp.volume_gradient,
+                        dim=m.n_surface,
+                        inputs=[self.x, self.inv_mass, self._faces_d, self._vf_start, self._vf, self._vol_grad, self._vol_sums],
+                    )
+                    wp.launch(
+                        kp.volume_multiplier,
+                        dim=1,
+                        inputs=[
+                            self._vol_sums,
+                            wp.float64(vol.target_volume),
+                            wp.float64(vol.compliance),
+                            wp.float64(self.damping),
+                            wp.float64(h),
+                            self._vol_lam,
+                            self._vol_dlam,
+                        ],
+                    )
+                    wp.launch(kp.volume_apply, dim=m.n_surface, inputs=[self.x, self.inv_mass, self._vol_grad, self._vol_dlam])
+                for normal, plane in self._planes:
+                    wp.launch(
+                        kc.ground_contact,
+                        dim=n,
+                        inputs=[self.x, self.x_prev, self.inv_mass, wp.vec3(*normal.astype(np.float32)), plane.height, self.contact_margin, plane.friction],
+                    )
+                for dc in self._mesh_colliders:
+                    wp.launch(
+                        kc.mesh_contact,
+                        dim=n,
+                        inputs=[self.x, self.x_prev, self.inv_mass, dc.mesh.id, dc.transforms, dc.inverses, s, self.contact_margin, dc.max_dist, dc.collider.friction],
+                    )
+            wp.launch(kp.update_velocities, dim=n, inputs=[self.x, self.x_pred, self.v, 1.0 / h])
+
+    def check_finite(self, frame: int, time: float) -> None:
+        self.flags.zero_()
+        wp.launch(kp.check_finite, dim=self.model.n_particles, inputs=[self.x, self.v, self.flags], device=self._device)
+        bad = self.flags.numpy()
+        if bad[0] or bad[1]:
+            quantity = "positions" if bad[0] else "velocities"
+            raise SimulationDiverged(self.name, frame, quantity, time)

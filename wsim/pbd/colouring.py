@@ -1,0 +1,72 @@
+"""Graph colouring of constraints, so that Gauss-Seidel projection runs in parallel without races.
+
+Two constraints conflict when they share a particle. Each colour is a maximal independent set of
+the conflict graph, built in vectorized rounds (Luby / Jones-Plassmann style): among the
+constraints not yet coloured, a constraint joins the current colour when it holds the smallest
+random priority at every one of its particles; repeated until no uncoloured constraint fits.
+
+Why colouring and not Jacobi with atomics: coloured Gauss-Seidel converges like the serial
+XPBD solver (so compliance means the same stiffness at any iteration count), needs no
+under-relaxation, and is deterministic: no floating-point atomics on the particle positions,
+so a GPU run repeats bit for bit. The cost is one launch per colour, which CUDA graph replay
+makes cheap. Because constraints are stored sorted by colour, a serial sweep over the whole
+array (what a single-threaded CPU launch does) performs exactly the same operations in the same
+order as the per-colour launches.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def colour_constraints(indices: np.ndarray, n_particles: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Colour constraints so that no two of one colour share a particle.
+
+    Args:
+        indices: (K, a) int particle indices of K constraints of arity a.
+        n_particles: number of particles (upper bound of the indices).
+        seed: seed of the random priorities (the colouring is deterministic for a seed).
+
+    Returns:
+        order: (K,) permutation that sorts the constraints by colour.
+        offsets: (C + 1,) int64; the constraints of colour c are order[offsets[c]:offsets[c + 1]].
+    """
+    idx = np.asarray(indices, dtype=np.int64)
+    k = idx.shape[0]
+    if k == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(1, dtype=np.int64)
+    arity = idx.shape[1]
+    priority = np.random.default_rng(seed).permutation(k).astype(np.int64)
+    colour = np.full(k, -1, dtype=np.int64)
+    remaining = np.arange(k)
+    current = 0
+    big = np.iinfo(np.int64).max
+    while remaining.size:
+        used = np.zeros(n_particles, dtype=bool)
+        candidates = remaining
+        while candidates.size:
+            best = np.full(n_particles, big, dtype=np.int64)
+            np.minimum.at(best, idx[candidates].ravel(), np.repeat(priority[candidates], arity))
+            wins = np.all(best[idx[candidates]] == priority[candidates, None], axis=1)
+            chosen = candidates[wins]
+            colour[chosen] = current
+            used[idx[chosen].ravel()] = True
+            candidates = candidates[~wins]
+            candidates = candidates[~np.any(used[idx[candidates]], axis=1)]
+        remaining = remaining[colour[remaining] < 0]
+        current += 1
+    # within a colour keep the original order: neighbouring constraints stay close in memory
+    order = np.lexsort((np.arange(k), colour))
+    counts = np.bincount(colour, minlength=current)
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    return order, offsets
+
+
+def is_valid_colouring(indices: np.ndarray, offsets: np.ndarray) -> bool:
+    """True when no two constraints in one colour (of colour-sorted ``indices``) share a particle."""
+    idx = np.asarray(indices)
+    for c in range(len(offsets) - 1):
+        block = idx[offsets[c] : offsets[c + 1]].ravel()
+        if np.unique(block).size != block.size:
+            return False
+    return True

@@ -1,0 +1,210 @@
+"""Animated USD export: one ``UsdGeom.Mesh`` per body, colliders as meshes, written atomically.
+
+Layout of a written stage (default prim ``/World``):
+
+- ``/World/<body>``: Mesh; topology (faceVertexCounts/Indices) written once, ``points`` and
+  ``extent`` time-sampled per frame; ``subdivisionScheme = none`` so DCC tools show the
+  simulated polygons instead of a Catmull-Clark limit surface.
+- ``/World/colliders/<collider>``: Mesh; a kinematic collider's pose is a time-sampled
+  ``xformOp:transform``; a ground plane is a square quad.
+
+Stage metadata: ``timeCodesPerSecond = framesPerSecond = fps``, start/end time codes = first and
+last written frames, ``metersPerUnit = 1`` (wsim is SI), ``upAxis`` Y or Z. The simulation is
+computed in the World's up axis; exporting to the other axis rotates every point and transform
+by +-90 degrees about X, so a Y-up scene opens upright in Blender when written with Z up.
+
+The stage lives in memory while frames are added; ``close`` exports it to a temporary file in
+the target folder and renames it onto the target, so a reader never sees a half-written file and
+a run that stops early (an error, Ctrl-C) still leaves every frame computed so far.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import TYPE_CHECKING, Sequence
+
+import numpy as np
+
+from wsim.errors import InvalidParameter, OutputError
+
+if TYPE_CHECKING:
+    from wsim.body import Body
+    from wsim.colliders import Collider
+
+USD_EXTENSIONS = (".usd", ".usda", ".usdc")
+
+# rotation taking world coordinates with the first up axis to the second (column vectors)
+_AXIS_ROTATION = {
+    ("Y", "Y"): np.eye(3),
+    ("Z", "Z"): np.eye(3),
+    ("Y", "Z"): np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]),  # (x, y, z) -> (x, -z, y)
+    ("Z", "Y"): np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]),  # (x, y, z) -> (x, z, -y)
+}
+
+_BODY_COLOR = (0.85, 0.45, 0.25)
+_COLLIDER_COLOR = (0.55, 0.58, 0.62)
+
+
+def check_up_axis(axis: str) -> str:
+    a = str(axis).upper()
+    if a not in ("Y", "Z"):
+        raise InvalidParameter(f"up axis must be 'Y' or 'Z', got {axis!r}")
+    return a
+
+
+def check_output_path(path: str | os.PathLike) -> Path:
+    """Fail before any simulation if ``path`` cannot receive a USD file."""
+    p = Path(path).expanduser()
+    if p.is_dir():
+        raise OutputError(f"output '{p}' is a directory")
+    if p.suffix.lower() not in USD_EXTENSIONS:
+        raise OutputError(f"output '{p}': the extension must be one of {', '.join(USD_EXTENSIONS)}")
+    folder = p.parent if str(p.parent) else Path(".")
+    if not folder.is_dir():
+        raise OutputError(f"output '{p}': the folder '{folder}' does not exist")
+    try:  # os.access is wrong for root and for some network file systems: try a real file
+        fd, probe = tempfile.mkstemp(prefix=".wsim-probe-", dir=folder)
+        os.close(fd)
+        os.remove(probe)
+    except OSError as exc:
+        raise OutputError(f"output '{p}': the folder '{folder}' is not writable ({exc.strerror})") from None
+    if p.exists() and not os.access(p, os.W_OK):
+        raise OutputError(f"output '{p}' exists and is read-only")
+    return p
+
+
+def _to_usd_matrix(m: np.ndarray):
+    """Column-vector 4x4 -> Gf.Matrix4d (USD multiplies row vectors: p' = p M, so transpose)."""
+    from pxr import Gf
+
+    return Gf.Matrix4d(*np.asarray(m, dtype=np.float64).T.ravel().tolist())
+
+
+class UsdWriter:
+    """Writes bodies and colliders frame by frame; see the module docstring.
+
+    Args:
+        path: target .usd/.usda/.usdc file (checked now, written at ``close``).
+        fps: frames per second (time code = frame index).
+        up_axis: the stage's up axis, "Y" or "Z".
+        world_up_axis: the up axis the simulation was computed in.
+    """
+
+    def __init__(self, path: str | os.PathLike, fps: float, up_axis: str = "Y", world_up_axis: str = "Y") -> None:
+        self.path = check_output_path(path)
+        self.fps = float(fps)
+        self.up_axis = check_up_axis(up_axis)
+        self._R = _AXIS_ROTATION[(check_up_axis(world_up_axis), self.up_axis)]
+        self._A = np.eye(4)
+        self._A[:3, :3] = self._R
+        self._stage = None
+        self._first: int | None = None
+        self._last: int | None = None
+        self._meshes: dict[str, object] = {}
+        self._kinematic: dict[str, object] = {}
+
+    @property
+    def frames_written(self) -> int:
+        return 0 if self._first is None else self._last - self._first + 1  # type: ignore[operator]
+
+    def begin(self, bodies: Sequence[Body], colliders: Sequence[Collider], up: np.ndarray) -> None:
+        """Create the stage and every prim's static data (topology, static collider geometry)."""
+        from pxr import Sdf, Tf, Usd, UsdGeom, Vt
+
+        from wsim.colliders import GroundPlane, MeshCollider
+
+        stage = Usd.Stage.CreateInMemory()
+        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y if self.up_axis == "Y" else UsdGeom.Tokens.z)
+        UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+        stage.SetTimeCodesPerSecond(self.fps)
+        stage.SetFramesPerSecond(self.fps)
+        root = UsdGeom.Xform.Define(stage, "/World")
+        stage.SetDefaultPrim(root.GetPrim())
+        stage.SetMetadata("comment", "written by wsim")
+
+        def define_mesh(path: str, faces: np.ndarray, color: tuple[float, float, float]):
+            mesh = UsdGeom.Mesh.Define(stage, Sdf.Path(path))
+            mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(faces), 3, dtype=np.int32)))
+            mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(faces, dtype=np.int32).ravel()))
+            mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+            mesh.CreateDisplayColorAttr([tuple(color)])
+            return mesh
+
+        for body in bodies:
+            path = f"/World/{Tf.MakeValidIdentifier(body.name)}"
+            if path in self._meshes:
+                raise InvalidParameter(f"body names '{body.name}' collide in USD as {path}")
+            self._meshes[path] = (body, define_mesh(path, body.faces, _BODY_COLOR))
+        if colliders:
+            UsdGeom.Scope.Define(stage, "/World/colliders")
+        for c in colliders:
+            path = f"/World/colliders/{Tf.MakeValidIdentifier(c.name)}"
+            if isinstance(c, GroundPlane):
+                n = c.resolved_normal(up)
+                a = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+                a /= np.linalg.norm(a)
+                b = np.cross(n, a)
+                half = 0.5 * c.size
+                quad = c.height * n + half * np.array([-a - b, a - b, a + b, -a + b])
+                # orient the quad so its normal is n (counter-clockwise seen from above)
+                if np.dot(np.cross(quad[1] - quad[0], quad[2] - quad[0]), n) < 0:
+                    quad = quad[::-1]
+                mesh = UsdGeom.Mesh.Define(stage, Sdf.Path(path))
+                mesh.CreateFaceVertexCountsAttr([4])
+                mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+                mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+                mesh.CreateDisplayColorAttr([_COLLIDER_COLOR])
+                pts = quad @ self._R.T
+                mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts.astype(np.float32)))
+                mesh.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(np.array([pts.min(0), pts.max(0)], dtype=np.float32)))
+            elif isinstance(c, MeshCollider):
+                mesh = define_mesh(path, c.faces, _COLLIDER_COLOR)
+                mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(c.vertices.astype(np.float32)))
+                mesh.CreateExtentAttr(
+                    Vt.Vec3fArray.FromNumpy(np.array([c.vertices.min(0), c.vertices.max(0)], dtype=np.float32))
+                )
+                op = mesh.AddTransformOp()
+                if c.kinematic:
+                    self._kinematic[path] = (c, op)
+                else:
+                    op.Set(_to_usd_matrix(self._A @ c.matrix(0.0)))
+        self._stage = stage
+
+    def write_frame(self, frame: int, time: float) -> None:
+        """Time-sample every body's points and extent, and kinematic collider poses, at ``frame``."""
+        from pxr import Usd, Vt
+
+        if self._stage is None:
+            raise RuntimeError("UsdWriter.begin must be called before write_frame")
+        code = Usd.TimeCode(float(frame))
+        for body, mesh in self._meshes.values():
+            pts = body.points() @ self._R.T
+            mesh.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(pts.astype(np.float32)), code)
+            mesh.GetExtentAttr().Set(Vt.Vec3fArray.FromNumpy(np.array([pts.min(0), pts.max(0)], dtype=np.float32)), code)
+        for c, op in self._kinematic.values():
+            op.Set(_to_usd_matrix(self._A @ c.matrix(time)), code)
+        self._first = frame if self._first is None else self._first
+        self._last = frame
+
+    def close(self) -> Path | None:
+        """Write the stage atomically (temp file + rename); returns the path, or None if nothing was begun."""
+        stage, self._stage = self._stage, None
+        if stage is None:
+            return None
+        if self._first is not None:
+            stage.SetStartTimeCode(float(self._first))
+            stage.SetEndTimeCode(float(self._last))
+        folder = self.path.parent if str(self.path.parent) else Path(".")
+        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.stem}.", suffix=self.path.suffix, dir=folder)
+        os.close(fd)
+        try:
+            if not stage.GetRootLayer().Export(tmp):
+                raise OutputError(f"output '{self.path}': USD could not write the file")
+            os.replace(tmp, self.path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.remove(tmp)
+            raise
+        return self.path

@@ -1,0 +1,182 @@
+"""World: the clock, the bodies, the colliders and the frame loop.
+
+The World owns time. ``step`` advances every body from frame time t_f = f / fps to t_{f+1}; each
+body covers that interval with its own internal steps (PBD substeps, BEM's fixed dt, EoL's
+adaptive dt). After each frame every body is checked for NaN/Inf, and ``run`` hands the frame to
+the USD writer. Bodies of different methods meet only through colliders in this version.
+"""
+
+from __future__ import annotations
+
+import math
+import time as _time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from wsim.body import Body, as_vec3
+from wsim.colliders import Collider
+from wsim.device import resolve_device
+from wsim.errors import InvalidParameter
+from wsim.usd import UsdWriter, check_up_axis
+
+_UP = {"Y": np.array([0.0, 1.0, 0.0]), "Z": np.array([0.0, 0.0, 1.0])}
+
+
+@dataclass(frozen=True)
+class RunSummary:
+    """What ``World.run`` did: frames simulated, simulated time [s], wall-clock seconds, output file."""
+
+    frames: int
+    sim_time: float
+    wall_seconds: float
+    out: Path | None
+    device: str
+    bodies: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def seconds_per_frame(self) -> float:
+        return self.wall_seconds / max(self.frames, 1)
+
+    def __str__(self) -> str:
+        where = f" -> {self.out}" if self.out else ""
+        parts = ", ".join(f"{k} ({v} vertices)" for k, v in self.bodies.items())
+        return (
+            f"{self.frames} frames ({self.sim_time:.3f} s simulated) in {self.wall_seconds:.2f} s "
+            f"({1000.0 * self.seconds_per_frame:.1f} ms/frame) on {self.device}: {parts}{where}"
+        )
+
+
+class World:
+    """A scene: bodies and colliders stepped frame by frame.
+
+    Args:
+        fps: frames per second of the output animation [1/s].
+        gravity: gravitational acceleration [m/s^2].
+        device: Warp device ("cpu", "cuda:0", ...); None picks cuda:0 when present, else cpu.
+        up_axis: "Y" or "Z", the axis the scene is built in (ground planes default to it).
+    """
+
+    def __init__(
+        self,
+        fps: float = 30.0,
+        gravity: Sequence[float] = (0.0, -9.81, 0.0),
+        device: str | None = None,
+        up_axis: str = "Y",
+    ) -> None:
+        fps_f = float(fps)
+        if not math.isfinite(fps_f) or fps_f <= 0.0:
+            raise InvalidParameter(f"World: fps = {fps} must be > 0")
+        self.fps = fps_f
+        self.gravity = as_vec3(gravity, "World: gravity")
+        self.device = resolve_device(device)
+        self.up_axis = check_up_axis(up_axis)
+        self.up = _UP[self.up_axis]
+        self.bodies: list[Body] = []
+        self.colliders: list[Collider] = []
+        self.frame = 0
+        self._bound = False
+
+    @property
+    def frame_dt(self) -> float:
+        """Length of one frame [s]."""
+        return 1.0 / self.fps
+
+    @property
+    def time(self) -> float:
+        """Current simulation time [s]."""
+        return self.frame / self.fps
+
+    def add(self, body: Body) -> Body:
+        """Add a body (returned, for chaining); names must be unique."""
+        if self._bound:
+            raise InvalidParameter(f"World: add body '{getattr(body, 'name', body)}' before the first step")
+        if not isinstance(body, Body):
+            raise InvalidParameter(f"World.add takes a wsim body (PbdBody, ...), got {type(body).__name__}")
+        if any(b.name == body.name for b in self.bodies):
+            raise InvalidParameter(f"World: a body named '{body.name}' already exists")
+        body.bind(self.device, self.gravity, self.up)
+        self.bodies.append(body)
+        return body
+
+    def add_collider(self, collider: Collider) -> Collider:
+        """Add a ground plane or mesh collider (returned)."""
+        if self._bound:
+            raise InvalidParameter(f"World: add collider '{collider.name}' before the first step")
+        if not isinstance(collider, Collider):
+            raise InvalidParameter(f"World.add_collider takes a GroundPlane or MeshCollider, got {type(collider).__name__}")
+        if any(c.name == collider.name for c in self.colliders):
+            raise InvalidParameter(f"World: a collider named '{collider.name}' already exists")
+        self.colliders.append(collider)
+        return collider
+
+    def _bind(self) -> None:
+        if not self._bound:
+            for body in self.bodies:
+                body.attach_colliders(self.colliders)
+            self._bound = True
+
+    def step(self) -> None:
+        """Advance every body by one frame (writes nothing). Raises SimulationDiverged on NaN/Inf."""
+        self._advance_frame()
+        self._check_frame()
+
+    def _advance_frame(self) -> None:
+        self._bind()
+        t0 = self.frame / self.fps
+        t1 = (self.frame + 1) / self.fps
+        for body in self.bodies:
+            body.advance(t0, t1)
+        self.frame += 1
+
+    def _check_frame(self) -> None:
+        for body in self.bodies:
+            body.check_finite(self.frame, self.time)
+
+    def run(
+        self,
+        frames: int,
+        out: str | Path | None = None,
+        *,
+        up_axis: str | None = None,
+        progress: bool = True,
+        on_frame: Callable[[World], None] | None = None,
+    ) -> RunSummary:
+        """Simulate ``frames`` frames and write them (plus the starting frame) to ``out`` as USD.
+
+        The output path is checked before any simulation. If a step fails (e.g. SimulationDiverged)
+        or the run is interrupted, the frames computed so far are written and the error re-raised.
+        ``on_frame(world)`` is called after each frame, before it is written (for scripted events).
+        """
+        if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 1:
+            raise InvalidParameter(f"World.run: frames = {frames!r} must be an integer >= 1")
+        writer = UsdWriter(out, self.fps, up_axis or self.up_axis, self.up_axis) if out is not None else None
+        self._bind()
+        start = _time.perf_counter()
+        done = 0
+        try:
+            if writer is not None:
+                writer.begin(self.bodies, self.colliders, self.up)
+                writer.write_frame(self.frame, self.time)
+            from tqdm import tqdm
+
+            for _ in tqdm(range(int(frames)), desc="wsim", unit="frame", disable=not progress, leave=False):
+                self._advance_frame()
+                if on_frame is not None:
+                    on_frame(self)
+                self._check_frame()  # after on_frame: a frame is written only if every body is finite
+                done += 1
+                if writer is not None:
+                    writer.write_frame(self.frame, self.time)
+        finally:
+            path = writer.close() if writer is not None else None
+        return RunSummary(
+            frames=done,
+            sim_time=done / self.fps,
+            wall_seconds=_time.perf_counter() - start,
+            out=path,
+            device=self.device.alias,
+            bodies={b.name: len(b.points()) for b in self.bodies},
+        )
