@@ -45,6 +45,43 @@ def xpbd_delta_lambda(
     return (-C - alpha_t * lam - gamma * grad_dot_dx) / denom
 
 
+@wp.func
+def project4(
+    x: wp.array(dtype=wp.vec3),
+    x_prev: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    lam: wp.array(dtype=float),
+    c: int,
+    ids: wp.vec4i,
+    g0: wp.vec3,
+    g1: wp.vec3,
+    g2: wp.vec3,
+    g3: wp.vec3,
+    C: float,
+    compliance: float,
+    beta: float,
+    h: float,
+):
+    """One XPBD projection of a 4-particle constraint with value C and gradients g0..g3 (module docstring)."""
+    w0 = inv_mass[ids[0]]
+    w1 = inv_mass[ids[1]]
+    w2 = inv_mass[ids[2]]
+    w3 = inv_mass[ids[3]]
+    w_grad2 = w0 * wp.dot(g0, g0) + w1 * wp.dot(g1, g1) + w2 * wp.dot(g2, g2) + w3 * wp.dot(g3, g3)
+    grad_dot_dx = (
+        wp.dot(g0, x[ids[0]] - x_prev[ids[0]])
+        + wp.dot(g1, x[ids[1]] - x_prev[ids[1]])
+        + wp.dot(g2, x[ids[2]] - x_prev[ids[2]])
+        + wp.dot(g3, x[ids[3]] - x_prev[ids[3]])
+    )
+    dl = xpbd_delta_lambda(C, lam[c], w_grad2, grad_dot_dx, compliance, beta, h)
+    lam[c] = lam[c] + dl
+    x[ids[0]] = x[ids[0]] + g0 * (w0 * dl)
+    x[ids[1]] = x[ids[1]] + g1 * (w1 * dl)
+    x[ids[2]] = x[ids[2]] + g2 * (w2 * dl)
+    x[ids[3]] = x[ids[3]] + g3 * (w3 * dl)
+
+
 @wp.kernel
 def predict_positions(
     x: wp.array(dtype=wp.vec3),
@@ -162,20 +199,12 @@ def solve_bending(
     """
     c = wp.tid() + offset
     ids = hinges[c]
-    a = ids[0]
-    b = ids[1]
-    p = ids[2]
-    q = ids[3]
-    wa = inv_mass[a]
-    wb = inv_mass[b]
-    wp_ = inv_mass[p]
-    wq = inv_mass[q]
-    if wa + wb + wp_ + wq == 0.0:
+    if inv_mass[ids[0]] + inv_mass[ids[1]] + inv_mass[ids[2]] + inv_mass[ids[3]] == 0.0:
         return
-    w1 = x[a]
-    w2 = x[b]
-    e0 = x[p]
-    e1 = x[q]
+    w1 = x[ids[0]]
+    w2 = x[ids[1]]
+    e0 = x[ids[2]]
+    e1 = x[ids[3]]
     E = e1 - e0
     len2 = wp.dot(E, E)
     n1 = wp.cross(E, w1 - e0)
@@ -197,19 +226,7 @@ def solve_bending(
         C = C - 2.0 * wp.pi
     if C < -wp.pi:
         C = C + 2.0 * wp.pi
-    w_grad2 = wa * wp.dot(g1, g1) + wb * wp.dot(g2, g2) + wp_ * wp.dot(g3, g3) + wq * wp.dot(g4, g4)
-    grad_dot_dx = (
-        wp.dot(g1, w1 - x_prev[a])
-        + wp.dot(g2, w2 - x_prev[b])
-        + wp.dot(g3, e0 - x_prev[p])
-        + wp.dot(g4, e1 - x_prev[q])
-    )
-    dl = xpbd_delta_lambda(C, lam[c], w_grad2, grad_dot_dx, compliance[c], beta, h)
-    lam[c] = lam[c] + dl
-    x[a] = w1 + g1 * (wa * dl)
-    x[b] = w2 + g2 * (wb * dl)
-    x[p] = e0 + g3 * (wp_ * dl)
-    x[q] = e1 + g4 * (wq * dl)
+    project4(x, x_prev, inv_mass, lam, c, ids, g1, g2, g3, g4, C, compliance[c], beta, h)
 
 
 @wp.kernel
@@ -232,38 +249,17 @@ def solve_tet_volume(
     """
     c = wp.tid() + offset
     ids = tets[c]
-    i0 = ids[0]
-    i1 = ids[1]
-    i2 = ids[2]
-    i3 = ids[3]
-    w0 = inv_mass[i0]
-    w1 = inv_mass[i1]
-    w2 = inv_mass[i2]
-    w3 = inv_mass[i3]
-    if w0 + w1 + w2 + w3 == 0.0:
+    if inv_mass[ids[0]] + inv_mass[ids[1]] + inv_mass[ids[2]] + inv_mass[ids[3]] == 0.0:
         return
-    x0 = x[i0]
-    d1 = x[i1] - x0
-    d2 = x[i2] - x0
-    d3 = x[i3] - x0
+    x0 = x[ids[0]]
+    d1 = x[ids[1]] - x0
+    d2 = x[ids[2]] - x0
+    d3 = x[ids[3]] - x0
     g1 = wp.cross(d2, d3) / 6.0
     g2 = wp.cross(d3, d1) / 6.0
     g3 = wp.cross(d1, d2) / 6.0
-    g0 = -(g1 + g2 + g3)
     C = wp.dot(d1, g1) - rest[c]
-    w_grad2 = w0 * wp.dot(g0, g0) + w1 * wp.dot(g1, g1) + w2 * wp.dot(g2, g2) + w3 * wp.dot(g3, g3)
-    grad_dot_dx = (
-        wp.dot(g0, x0 - x_prev[i0])
-        + wp.dot(g1, x[i1] - x_prev[i1])
-        + wp.dot(g2, x[i2] - x_prev[i2])
-        + wp.dot(g3, x[i3] - x_prev[i3])
-    )
-    dl = xpbd_delta_lambda(C, lam[c], w_grad2, grad_dot_dx, compliance[c], beta, h)
-    lam[c] = lam[c] + dl
-    x[i0] = x0 + g0 * (w0 * dl)
-    x[i1] = x[i1] + g1 * (w1 * dl)
-    x[i2] = x[i2] + g2 * (w2 * dl)
-    x[i3] = x[i3] + g3 * (w3 * dl)
+    project4(x, x_prev, inv_mass, lam, c, ids, -(g1 + g2 + g3), g1, g2, g3, C, compliance[c], beta, h)
 
 
 @wp.kernel
@@ -275,6 +271,7 @@ def volume_gradient(
     vertex_faces: wp.array(dtype=int),
     grad: wp.array(dtype=wp.vec3),
     sums: wp.array(dtype=wp.float64),
+    slot: int,
 ):
     """Global enclosed volume of a closed surface and its gradient, one thread per vertex.
 
@@ -282,7 +279,8 @@ def volume_gradient(
     (x_b - o) x (x_c - o) with (i, b, c) the face read cyclically from i. o = x[0] removes the
     float32 cancellation of a body far from the origin (V and its gradient do not depend on o
     for a closed surface). V is homogeneous of degree 3 in (x - o), so V = (1/3) sum_i (x_i - o).grad_i V:
-    each thread adds its share, with w_i |grad_i V|^2, to sums = [V, sum w|grad V|^2] in float64.
+    each thread adds its share, with w_i |grad_i V|^2, to sums[2 slot], sums[2 slot + 1] in float64
+    (the slot of this iteration, zeroed at the start of the substep).
     """
     i = wp.tid()
     o = x[0]
@@ -300,37 +298,8 @@ def volume_gradient(
         g = g + wp.cross(x[b] - o, x[c] - o)
     g = g / 6.0
     grad[i] = g
-    wp.atomic_add(sums, 0, wp.float64(wp.dot(x[i] - o, g)) / wp.float64(3.0))
-    wp.atomic_add(sums, 1, wp.float64(inv_mass[i] * wp.dot(g, g)))
-
-
-@wp.kernel
-def volume_multiplier(
-    sums: wp.array(dtype=wp.float64),
-    target_volume: wp.float64,
-    compliance: wp.float64,
-    beta: wp.float64,
-    h: wp.float64,
-    lam: wp.array(dtype=wp.float64),
-    dlam: wp.array(dtype=wp.float64),
-):
-    """One thread: dlambda of the global volume constraint C = V - V_target ([XPBD] Eq. 18).
-
-    No Rayleigh term here: the rate of the whole-body volume is damped by the edge and tet
-    constraints already, and a global damping term would need one more reduction.
-    Compliance [m^3/Pa] (V0/K for bulk modulus K).
-    """
-    alpha_t = compliance / (h * h)
-    C = sums[0] - target_volume
-    denom = sums[1] + alpha_t
-    d = wp.float64(0.0)
-    if denom > wp.float64(0.0):
-        d = (-C - alpha_t * lam[0]) / denom
-    lam[0] = lam[0] + d
-    dlam[0] = d
-    # the sums are reused by the next iteration: clear them here, inside the same graph
-    sums[0] = wp.float64(0.0)
-    sums[1] = wp.float64(0.0)
+    wp.atomic_add(sums, 2 * slot, wp.float64(wp.dot(x[i] - o, g)) / wp.float64(3.0))
+    wp.atomic_add(sums, 2 * slot + 1, wp.float64(inv_mass[i] * wp.dot(g, g)))
 
 
 @wp.kernel
@@ -338,11 +307,30 @@ def volume_apply(
     x: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     grad: wp.array(dtype=wp.vec3),
-    dlam: wp.array(dtype=wp.float64),
+    sums: wp.array(dtype=wp.float64),
+    lam: wp.array(dtype=wp.float64),
+    slot: int,
+    target_volume: wp.float64,
+    compliance: wp.float64,
+    h: wp.float64,
 ):
-    """x_i += w_i grad_i V dlambda for the global volume constraint."""
+    """Global volume constraint C = V - V_target ([XPBD] Eq. 18): x_i += w_i grad_i V dlambda.
+
+    Every thread computes the same dlambda from sums[2 slot:2 slot + 2] and lam[slot]; thread 0
+    stores lam[slot + 1] = lam[slot] + dlambda for the next iteration (lam[0] = 0 each substep),
+    so no single-thread launch is needed. No Rayleigh term: the rate of the whole-body volume is
+    damped by the edge and tet constraints already. Compliance [m^3/Pa] (V0/K for bulk modulus K).
+    """
     i = wp.tid()
-    x[i] = x[i] + grad[i] * (inv_mass[i] * float(dlam[0]))
+    alpha_t = compliance / (h * h)
+    C = sums[2 * slot] - target_volume
+    denom = sums[2 * slot + 1] + alpha_t
+    d = wp.float64(0.0)
+    if denom > wp.float64(0.0):
+        d = (-C - alpha_t * lam[slot]) / denom
+    if i == 0:
+        lam[slot + 1] = lam[slot] + d
+    x[i] = x[i] + grad[i] * (inv_mass[i] * float(d))
 
 
 @wp.kernel

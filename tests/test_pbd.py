@@ -309,3 +309,14 @@ def test_model_is_cached_and_shared(tmp_path):
     for fa, fb in zip(a.model.families, b.model.families):
         assert np.array_equal(fa.indices, fb.indices) and np.array_equal(fa.compliance, fb.compliance)
     assert not np.array_equal(a.model.families[0].compliance, c.model.families[0].compliance)
+
+
+def test_frame_layout_is_built_once(device):
+    """Per-frame buffers (and on CUDA the frame's graph) are built once, not every frame."""
+    world = wsim.World(fps=30, device=device)
+    body = world.add(wsim.PbdBody(sphere(), name="b"))
+    world.step()
+    layout, graph = body._layout, body._graph
+    for _ in range(40):  # frame lengths (f + 1)/30 - f/30 differ in their last bits
+        world.step()
+    assert body._layout is layout and body._graph is graph

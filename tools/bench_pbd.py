@@ -32,7 +32,7 @@ import subprocess
 import sys
 import time
 
-SIZES = {"1k": (40, 25), "5k": (100, 50), "15k": (300, 50), "50k": (500, 100)}  # neck_body rings, sectors
+SIZES = {"1k": (52, 24), "5k": (104, 48), "15k": (320, 48), "50k": (530, 96)}  # neck_body rings, sectors
 PAPER_15K_SECONDS_100_FRAMES = 6.42
 
 
@@ -142,6 +142,80 @@ def run_case(size: str, tets: bool, device: str | None, frames: int, reference_f
     return out
 
 
+SWEEP = [(5, 1), (10, 1), (5, 2), (10, 2), (20, 1), (20, 2), (40, 1)]
+SWEEP_REFERENCE = (160, 2)  # successive refinements converge ~first order; (80,2) vs (160,2) differ ~0.3 %
+
+
+def run_sweep(size: str, device: str | None, frames: int) -> list[dict]:
+    """Speed/accuracy of (substeps, iterations) on the posed model: max vertex error at frames
+    frames/4, frames/2, 3 frames/4 and frames against a 160-substep, 2-iteration run, relative to
+    the bounding-box diagonal, beside seconds per frame."""
+    import numpy as np
+    import warp as wp
+
+    import wsim
+    from wsim import mesh as wmesh
+    from wsim.device import quiet_warp
+
+    quiet_warp()
+    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "scenes"))
+    import posed_neck
+
+    rings, sectors = SIZES[size]
+    shape = wmesh.neck_body(length=1.6, rings=rings, sectors=sectors)
+    u = np.asarray(shape.vertices)[:, 0]
+    torso, head = np.flatnonzero(u < 0.40 * 1.6), np.flatnonzero(u > 0.85 * 1.6)
+    motion = posed_neck.head_motion(np.array([0.72, 0.0, 0.0]), np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]))
+    checks = {frames // 4, frames // 2, 3 * frames // 4, frames}
+
+    def simulate(substeps: int, iterations: int) -> tuple[dict[int, np.ndarray], float, str]:
+        world = wsim.World(fps=30, device=device)
+        world.add(
+            wsim.PbdBody(
+                shape,
+                wsim.ElasticMaterial(E=3.0e5, nu=0.4, rho=1000.0),
+                name="creature",
+                pinned=torso,
+                handles=[wsim.Handle(head, motion, name="head")],
+                substeps=substeps,
+                iterations=iterations,
+                cache=False,
+            )
+        )
+        body = world.bodies[0]
+        world.step()
+        wp.synchronize_device(world.device)
+        snaps, times = {}, []
+        for f in range(2, frames + 1):
+            t0 = time.perf_counter()
+            world.step()
+            times.append(time.perf_counter() - t0)
+            if f in checks:
+                snaps[f] = body.points()
+        return snaps, statistics.median(times), world.device.alias
+
+    ref, _, dev = simulate(*SWEEP_REFERENCE)
+    diag = float(np.linalg.norm(np.ptp(np.asarray(shape.vertices), axis=0)))
+    out = []
+    for substeps, iterations in SWEEP:
+        snaps, spf, _ = simulate(substeps, iterations)
+        err = max(float(np.abs(snaps[f] - ref[f]).max()) for f in checks) / diag
+        out.append(
+            {
+                "case": f"sweep-{size}",
+                "device": dev,
+                "vertices": len(shape.vertices),
+                "substeps": substeps,
+                "iterations": iterations,
+                "seconds_per_frame": spf,
+                "error_vs_reference": err,
+                "reference": {"substeps": SWEEP_REFERENCE[0], "iterations": SWEEP_REFERENCE[1]},
+                "error_kind": "max vertex distance over 4 frames / bounding-box diagonal",
+            }
+        )
+    return out
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--device", default=None)
@@ -150,8 +224,13 @@ def main() -> None:
     p.add_argument("--frames", type=int, default=100)
     p.add_argument("--reference", action="store_true", help="time the numpy reference in the same run")
     p.add_argument("--reference-frames", type=int, default=3)
+    p.add_argument("--sweep", default=None, metavar="SIZE", help="speed/accuracy sweep of substeps x iterations at SIZE")
     p.add_argument("--case", default=None, help=argparse.SUPPRESS)  # internal: run one case here
     args = p.parse_args()
+    if args.sweep:
+        for row in run_sweep(args.sweep, args.device, args.frames):
+            print(json.dumps(row), flush=True)
+        return
     if args.case:
         size, _, kind = args.case.partition(":")
         res = run_case(size, kind == "tets", args.device, args.frames, args.reference_frames if args.reference else 0)

@@ -6,8 +6,10 @@ Conventions used throughout this module (and expected by every caller):
 * faces are ``int32`` arrays of shape ``(M, 3)``, listed counter-clockwise when seen from outside,
   so the right-hand-rule normals point outwards and the signed volume is positive;
 * every problem with a mesh raises :class:`wsim.errors.InvalidMesh` whose message starts with
-  ``"mesh '<name>': "`` and names the offending quantity together with an example index, so a
-  scene script can be fixed from the message alone.
+  the object's name -- ``"mesh '<name>': "`` for a bare name, or the caller's own label verbatim
+  when it is already quoted (``name="body 'horse'"`` gives ``"body 'horse': "``) -- and names the
+  offending quantity together with an example index, so a scene script can be fixed from the
+  message alone.
 
 Everything here is plain vectorized numpy/scipy (no Python loop over faces or vertices), so
 validating a 100k-face surface takes a fraction of a second.
@@ -61,7 +63,10 @@ _MAX_SUBDIVISIONS = 7
 
 
 def _prefix(name: str) -> str:
-    return f"mesh '{name}'"
+    """Start of every error message: a bare name becomes ``mesh 'name'``; a label the caller has
+    already formatted (it contains a quote, e.g. ``body 'horse'``) is used as is."""
+    name = str(name)
+    return name if ("'" in name or '"' in name) else f"mesh '{name}'"
 
 
 def _fmt_vec(v: np.ndarray) -> str:
@@ -120,7 +125,7 @@ def _edge_keys(a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:
     return np.minimum(a, b) * n + np.maximum(a, b)
 
 
-def _faces_only(faces: Any, what: str = "faces") -> np.ndarray:
+def _faces_only(faces: Any, what: str = "mesh") -> np.ndarray:
     """Faces array for the topology-only functions (edges, hinges): (M, 3) non-negative ints."""
     f = np.asarray(faces)
     if f.size == 0:
@@ -203,7 +208,7 @@ def surface_arrays(mesh: trimesh.Trimesh | tuple[Any, Any], name: str = "mesh") 
     Args:
         mesh: a ``trimesh.Trimesh`` or a ``(vertices, faces)`` pair of array-likes; vertex
             coordinates in metres.
-        name: the object's name, used in error messages.
+        name: the object's name, used at the start of error messages (see the module docstring).
 
     Returns:
         ``(V, F)``: ``V`` a C-contiguous float64 (N, 3) copy of the vertices [m], ``F`` int32
@@ -539,6 +544,44 @@ def _neck_profile(
     return (body**p + head**p) ** (1.0 / p)
 
 
+def _ring_sector_counts(radius: np.ndarray, spacing: float, sectors: int) -> np.ndarray:
+    """Sectors of each ring: the smallest of sectors, sectors/2, sectors/4, ... (>= 3) whose arc
+    2 pi r / m is no longer than the ring spacing, with neighbouring rings differing by at most 2x.
+
+    Why: a single pole vertex joined to a full ring has valence ``sectors``; halving the ring size
+    towards the poles keeps every valence <= 12, which bounds the number of constraint colours
+    (one GPU launch each) and keeps the triangles near the poles from becoming needles.
+    """
+    allowed = [sectors]
+    while allowed[-1] % 2 == 0 and allowed[-1] // 2 >= 3:
+        allowed.append(allowed[-1] // 2)
+    allowed_arr = np.array(allowed[::-1])  # ascending
+    idx = np.minimum(np.searchsorted(allowed_arr, 2.0 * np.pi * radius / spacing), len(allowed_arr) - 1)
+    for _ in range(len(allowed_arr)):  # at most one halving between neighbours, from either side
+        idx[1:] = np.maximum(idx[1:], idx[:-1] - 1)
+        idx[:-1] = np.maximum(idx[:-1], idx[1:] - 1)
+    return allowed_arr[idx]
+
+
+def _ring_strip(a0: int, m0: int, a1: int, m1: int) -> np.ndarray:
+    """Triangles joining ring (first vertex a0, m0 vertices) to the next ring along +x (a1, m1).
+
+    m1 is m0, 2 m0 or m0 / 2; vertex j of a ring of m sits at angle 2 pi j / m, so the rings of a
+    halving share the angles of every other vertex. Walked +phi first, then +x: outward normals.
+    """
+    if m1 == m0:
+        j = np.arange(m0)
+        jn = (j + 1) % m0
+        return np.concatenate([np.stack([a0 + j, a0 + jn, a1 + jn], 1), np.stack([a0 + j, a1 + jn, a1 + j], 1)])
+    if m1 == 2 * m0:
+        i = np.arange(m0)
+        s0, s1 = a0 + i, a0 + (i + 1) % m0
+        l0, l1, l2 = a1 + 2 * i, a1 + 2 * i + 1, a1 + (2 * i + 2) % m1
+        return np.concatenate([np.stack([s0, s1, l1], 1), np.stack([s0, l1, l0], 1), np.stack([s1, l2, l1], 1)])
+    # halving: the doubling strip seen from the other side, with the walk reversed
+    return _ring_strip(a1, m1, a0, m0)[:, ::-1]
+
+
 def neck_body(
     length: float = 1.6,
     torso_radius: float = 0.2,
@@ -551,18 +594,19 @@ def neck_body(
 
     A surface of revolution about the x axis whose radius profile is a wide torso over the first
     ~40 % of the length, a smooth (cosine) narrowing into a neck of ``neck_radius`` and an
-    ellipsoidal head bulb at the far end. Rings are spaced uniformly in arc length of the profile
-    (so the sqrt-like caps at the poles get as many rings as their length needs and no face
-    degenerates); each end is closed by one pole vertex. Vertex 0 is the pole at x = 0, vertices
-    ``1 + i*sectors + j`` are ring i, sector j, and the last vertex is the pole at x = length.
+    ellipsoidal head bulb at the far end. ``rings`` rings are spaced uniformly in arc length of
+    the profile; a ring has ``sectors`` vertices, halved (24, 12, 6, ...) near the poles where its
+    circumference is short, so no vertex has more than 12 neighbours and no face degenerates
+    (use a ``sectors`` with factors of 2 for the smallest pole rings). Each end is closed by one
+    pole vertex: vertex 0 at x = 0, the last vertex at x = length.
 
     Args:
         length: total length [m].
         torso_radius, neck_radius, head_radius: radii [m] of the three parts.
         rings: number of vertex rings (>= 2).
-        sectors: vertices per ring (>= 3).
+        sectors: vertices of a full ring (>= 3).
 
-    Returns a mesh with exactly ``rings * sectors + 2`` vertices.
+    Returns a mesh with at most ``rings * sectors + 2`` vertices.
     """
     length = _check_positive(length, "neck_body length")
     torso_radius = _check_positive(torso_radius, "neck_body torso_radius")
@@ -581,37 +625,27 @@ def neck_body(
     dense = 0.5 * length * (1.0 - np.cos(np.linspace(0.0, np.pi, 8001)))
     r_dense = _neck_profile(dense, length, torso_radius, neck_radius, head_radius)
     arc = np.r_[0.0, np.cumsum(np.hypot(np.diff(dense), np.diff(r_dense)))]
-    targets = arc[-1] * np.arange(1, rings + 1) / (rings + 1)
-    xr = np.interp(targets, arc, dense)
+    spacing = arc[-1] / (rings + 1)
+    xr = np.interp(spacing * np.arange(1, rings + 1), arc, dense)
     rr = _neck_profile(xr, length, torso_radius, neck_radius, head_radius)
+    counts = _ring_sector_counts(rr, spacing, sectors)
+    starts = 1 + np.concatenate([[0], np.cumsum(counts)[:-1]])
 
-    phi = 2.0 * np.pi * np.arange(sectors) / sectors
-    ring_pts = np.stack(
-        [
-            np.repeat(xr, sectors),
-            (rr[:, None] * np.cos(phi)[None, :]).reshape(-1),
-            (rr[:, None] * np.sin(phi)[None, :]).reshape(-1),
-        ],
-        axis=1,
-    )
-    v = np.vstack([[0.0, 0.0, 0.0], ring_pts, [length, 0.0, 0.0]])
+    pts = [np.zeros((1, 3))]
+    for x, r, m in zip(xr, rr, counts):
+        phi = 2.0 * np.pi * np.arange(m) / m
+        pts.append(np.stack([np.full(m, x), r * np.cos(phi), r * np.sin(phi)], axis=1))
+    last_pole = 1 + int(counts.sum())
+    pts.append(np.array([[length, 0.0, 0.0]]))
+    v = np.vstack(pts)
 
-    ring = 1 + np.arange(rings)[:, None] * sectors  # first vertex of each ring
-    j = np.arange(sectors)[None, :]
-    jn = (j + 1) % sectors
-    # Outward normal = d/dphi x d/dx, so each quad is walked in +phi first, then +x.
-    a = (ring[:-1] + j).reshape(-1)
-    b = (ring[:-1] + jn).reshape(-1)
-    c = (ring[1:] + jn).reshape(-1)
-    d = (ring[1:] + j).reshape(-1)
-    quads = np.concatenate([np.stack([a, b, c], axis=1), np.stack([a, c, d], axis=1)])
-    last_pole = rings * sectors + 1
-    j1 = np.arange(sectors)
-    fan0 = np.stack([np.zeros(sectors, dtype=np.int64), 1 + (j1 + 1) % sectors, 1 + j1], axis=1)
-    top = 1 + (rings - 1) * sectors
-    fan1 = np.stack([np.full(sectors, last_pole), top + j1, top + (j1 + 1) % sectors], axis=1)
-    f = np.concatenate([fan0, quads, fan1])
-    return _finish(v, f, "neck_body")
+    j0 = np.arange(counts[0])
+    faces = [np.stack([np.zeros(counts[0], dtype=np.int64), starts[0] + (j0 + 1) % counts[0], starts[0] + j0], axis=1)]
+    for i in range(rings - 1):
+        faces.append(_ring_strip(int(starts[i]), int(counts[i]), int(starts[i + 1]), int(counts[i + 1])))
+    j1 = np.arange(counts[-1])
+    faces.append(np.stack([np.full(counts[-1], last_pole), starts[-1] + j1, starts[-1] + (j1 + 1) % counts[-1]], axis=1))
+    return _finish(v, np.concatenate(faces), "neck_body")
 
 
 def _box_surface(lo: np.ndarray, hi: np.ndarray, divisions: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -806,47 +840,43 @@ def _closest_points_on_triangles(
 
     Returns ``(x, region)``; region says which feature holds the closest point: 0 = a, 1 = b,
     2 = edge ab, 3 = c, 4 = edge ac, 5 = edge bc, 6 = interior. The Voronoi-region tests follow the
-    usual barycentric derivation; later assignments override earlier ones so that the priority is
-    a, b, ab, c, ac, bc, interior, as in a sequential implementation.
+    usual barycentric derivation, checked in the order a, b, ab, c, ac, bc, interior; only the
+    (K,) barycentric weights are selected per region, so the cost stays a few passes over K.
     """
 
     def dot(u: np.ndarray, w: np.ndarray) -> np.ndarray:
         return np.einsum("ij,ij->i", u, w)
 
     ab, ac = b - a, c - a
-    ap, bp, cp = p - a, p - b, p - c
+    ap = p - a
     d1, d2 = dot(ab, ap), dot(ac, ap)
-    d3, d4 = dot(ab, bp), dot(ac, bp)
-    d5, d6 = dot(ab, cp), dot(ac, cp)
+    # (p - b) . e = (p - a) . e - ab . e and (p - c) . e = (p - a) . e - ac . e
+    ab_ab, ab_ac, ac_ac = dot(ab, ab), dot(ab, ac), dot(ac, ac)
+    d3, d4 = d1 - ab_ab, d2 - ab_ac
+    d5, d6 = d1 - ab_ac, d2 - ac_ac
     va = d3 * d6 - d5 * d4
     vb = d5 * d2 - d1 * d6
     vc = d1 * d4 - d3 * d2
+    conditions = [
+        (d1 <= 0) & (d2 <= 0),
+        (d3 >= 0) & (d4 <= d3),
+        (vc <= 0) & (d1 >= 0) & (d3 <= 0),
+        (d6 >= 0) & (d5 <= d6),
+        (vb <= 0) & (d2 >= 0) & (d6 <= 0),
+        (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),
+    ]
     with np.errstate(divide="ignore", invalid="ignore"):
+        t_ab = d1 / (d1 - d3)
+        t_ac = d2 / (d2 - d6)
+        t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
         denom = va + vb + vc
-        x = a + ab * (vb / denom)[:, None] + ac * (vc / denom)[:, None]
-        region = np.full(p.shape[0], 6, dtype=np.int8)
-
-        m = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
-        t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        x[m] = (b + (c - b) * t[:, None])[m]
-        region[m] = 5
-        m = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-        t = d2 / (d2 - d6)
-        x[m] = (a + ac * t[:, None])[m]
-        region[m] = 4
-        m = (d6 >= 0) & (d5 <= d6)
-        x[m] = c[m]
-        region[m] = 3
-        m = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-        t = d1 / (d1 - d3)
-        x[m] = (a + ab * t[:, None])[m]
-        region[m] = 2
-        m = (d3 >= 0) & (d4 <= d3)
-        x[m] = b[m]
-        region[m] = 1
-        m = (d1 <= 0) & (d2 <= 0)
-        x[m] = a[m]
-        region[m] = 0
+        zero = np.zeros_like(d1)
+        one = np.ones_like(d1)
+        # x = a + v * ab + w * ac
+        v = np.select(conditions, [zero, one, t_ab, zero, zero, 1.0 - t_bc], vb / denom)
+        w = np.select(conditions, [zero, zero, zero, one, t_ac, t_bc], vc / denom)
+    region = np.select(conditions, [0, 1, 2, 3, 4, 5], 6).astype(np.int8)
+    x = a + ab * v[:, None] + ac * w[:, None]
     return x, region
 
 
@@ -860,9 +890,7 @@ def _linked_components(points: np.ndarray, link: float, k: int = 8) -> np.ndarra
     """
     n = points.shape[0]
     ijk = np.floor((points - points.min(axis=0)) / (0.5 * link)).astype(np.int64)
-    dims = ijk.max(axis=0) + 1
-    keys = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
-    _, first, cell_of = np.unique(keys, return_index=True, return_inverse=True)
+    _, first, cell_of = np.unique(ijk, axis=0, return_index=True, return_inverse=True)
     reps = points[first]
     m = reps.shape[0]
     kk = min(k + 1, m)
@@ -930,14 +958,20 @@ class _InsideOracle:
         self.vertex_normal = _scatter_add_rows(src, weighted, n)
 
     def _nearest(self, pts: np.ndarray, owner: np.ndarray, cand: np.ndarray, n: int) -> tuple[np.ndarray, ...]:
-        """Closest candidate face of each of n points (every point has >= 1 candidate).
+        """Closest candidate face of each of n points; ``owner`` (sorted) says which point each
+        candidate face ``cand`` belongs to, and every point has at least one candidate.
 
         Returns per point: squared distance [m^2], closest point [m], region code, face index.
         """
-        x, region = _closest_points_on_triangles(pts[owner], self.a[cand], self.b[cand], self.c[cand])
-        d2 = ((pts[owner] - x) ** 2).sum(axis=1)
-        counts = np.bincount(owner, minlength=n)
-        best = np.lexsort((d2, owner))[np.r_[0, np.cumsum(counts)[:-1]]]
+        po = pts[owner]
+        x, region = _closest_points_on_triangles(po, self.a[cand], self.b[cand], self.c[cand])
+        d2 = ((po - x) ** 2).sum(axis=1)
+        # owner is sorted (candidates are generated point by point): segment minima, then the
+        # first pair of each point that attains its minimum.
+        starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
+        d2min = np.minimum.reduceat(d2, starts)
+        hit = np.flatnonzero(d2 == d2min[owner])
+        best = hit[np.r_[True, owner[hit][1:] != owner[hit][:-1]]]
         return d2[best], x[best], region[best], cand[best]
 
     def classify(self, points: np.ndarray, rho: float) -> tuple[np.ndarray, np.ndarray]:
@@ -948,8 +982,8 @@ class _InsideOracle:
         dist = np.full(q, rho, dtype=np.float64)
         far = np.zeros(q, dtype=bool)
         ambiguous = np.zeros(q, dtype=bool)
-        n_faces = self.f.shape[0]
-        k = min(16, n_faces)
+        k = min(32, self.f.shape[0])
+        k_first = min(4, k)
         bound = rho + self.face_radius
         slack = 1e-9 * self.scale + 1e-300
         for start in range(0, q, _ORACLE_CHUNK_POINTS):
@@ -967,15 +1001,23 @@ class _InsideOracle:
             if sel.size == 0:
                 continue
             p_near = pts[sel]
-            valid = np.isfinite(dk[sel])
+            dk, ik = dk[sel], ik[sel]
+            # Upper bound u on the distance from the few nearest faces, then only faces whose
+            # bounding ball reaches within u (|p - centroid| - radius <= u) can hold the closest
+            # point: this removes most candidate pairs before the exact computation.
+            valid = np.isfinite(dk[:, :k_first])
             owner = np.nonzero(valid)[0]
-            cand = ik[sel][valid]
-            d2, x, reg, fi = self._nearest(p_near, owner, cand, sel.size)
+            d2, _, _, _ = self._nearest(p_near, owner, ik[:, :k_first][valid], sel.size)
             u = np.sqrt(d2)
-            # The closest face has its centroid within u + face_radius. The k nearest centroids
-            # contain every such face if the k-th is farther than that, or if fewer than k lie
-            # within the search bound and that bound covers u + face_radius.
-            kth = dk[sel, -1]
+            valid = np.isfinite(dk)
+            valid[valid] = dk[valid] - self.radii[ik[valid]] <= (u[:, None] + slack).repeat(k, axis=1)[valid]
+            owner = np.nonzero(valid)[0]
+            d2, x, reg, fi = self._nearest(p_near, owner, ik[valid], sel.size)
+            u = np.sqrt(d2)
+            # Exact unless a face beyond the k nearest centroids could still be closer: its
+            # centroid would lie within u + face_radius, beyond the k-th (or beyond the search
+            # bound when fewer than k were in range).
+            kth = dk[:, -1]
             enough = np.where(np.isfinite(kth), kth > u + self.face_radius + slack, u + slack <= rho)
             redo = np.flatnonzero(~enough)
             if redo.size:
@@ -985,7 +1027,6 @@ class _InsideOracle:
                 counts = np.fromiter(map(len, lists), dtype=np.int64, count=redo.size)
                 cand2 = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(counts.sum()))
                 owner2 = np.repeat(np.arange(redo.size), counts)
-                # Per-face bound: drop faces that cannot beat the distance already found.
                 reach = np.linalg.norm(p_near[redo][owner2] - self.centroids[cand2], axis=1) - self.radii[cand2]
                 keep = reach <= u[redo][owner2] + slack
                 d2r, xr, regr, fir = self._nearest(p_near[redo], owner2[keep], cand2[keep], redo.size)
@@ -1093,7 +1134,7 @@ def tetrahedralize(
         vertices, faces: the surface (see :func:`surface_arrays`); must pass
             ``check_surface(closed=True)``.
         spacing: interior grid spacing [m]; default the mean surface edge length.
-        name: the object's name, used in error messages.
+        name: the object's name, used at the start of error messages (see the module docstring).
 
     Returns:
         ``(points, tets)``: float64 (P, 3) [m] and int32 (T, 4).
@@ -1109,10 +1150,14 @@ def tetrahedralize(
     # every grid point left unmeasured is at least h/2 from the surface.
     rho = max(h, mean_edge)
     grid = _grid_candidates(v, h)
+    grid_dist = np.zeros(0)
     if grid.shape[0]:
         inside, dist = oracle.classify(grid, rho)
-        grid = grid[inside & (dist >= 0.5 * h)]
+        keep = inside & (dist >= 0.5 * h)
+        grid, grid_dist = grid[keep], dist[keep]
     points = np.vstack([v, grid])
+    # Radius of a surface-free ball around every point (0 for surface vertices).
+    clearance = np.concatenate([np.zeros(v.shape[0]), grid_dist])
 
     try:
         tets = Delaunay(points).simplices.astype(np.int64)
@@ -1126,8 +1171,15 @@ def tetrahedralize(
     tets[flip] = tets[flip][:, [0, 1, 3, 2]]
     tets = tets[np.abs(det) > 6.0 * 1e-10 * h**3]  # det = 6 * volume
     if tets.shape[0]:
-        centroids = points[tets].mean(axis=1)
-        inside, _ = oracle.classify(centroids, rho)
+        corners = points[tets]
+        centroids = corners.mean(axis=1)
+        # A centroid within the surface-free ball of one of its tet's interior grid points is
+        # inside (the ball lies inside); only the others need the oracle.
+        covered = (np.linalg.norm(corners - centroids[:, None, :], axis=2) < clearance[tets]).any(axis=1)
+        inside = covered.copy()
+        rest = np.flatnonzero(~covered)
+        if rest.size:
+            inside[rest] = oracle.classify(centroids[rest], rho)[0]
         tets = tets[inside]
     if tets.shape[0] == 0:
         raise InvalidMesh(

@@ -324,16 +324,24 @@ class PbdBody(Body):
             self.x_pred = wp.zeros(n, dtype=wp.vec3)
             self.inv_mass = wp.array(inv_mass.astype(np.float32), dtype=float)
             self.flags = wp.zeros(2, dtype=int)
-            self._families = [self._upload_family(f) for f in m.families]
+            # one multiplier array for every family: a single memset per substep resets them all
+            self._lam = wp.zeros(max(sum(f.count for f in m.families), 1), dtype=float)
+            self._families = []
+            start = 0
+            for f in m.families:
+                self._families.append(self._upload_family(f, self._lam[start : start + f.count]))
+                start += f.count
             if m.volume is not None:
                 vol = m.volume
                 self._faces_d = wp.array(m.faces, dtype=wp.vec3i)
                 self._vf_start = wp.array(vol.vertex_face_start, dtype=int)
                 self._vf = wp.array(vol.vertex_faces, dtype=int)
                 self._vol_grad = wp.zeros(m.n_surface, dtype=wp.vec3)
-                self._vol_sums = wp.zeros(2, dtype=wp.float64)
-                self._vol_lam = wp.zeros(1, dtype=wp.float64)
-                self._vol_dlam = wp.zeros(1, dtype=wp.float64)
+                # per iteration k: sums [V, sum w|grad V|^2] in slot k, multiplier before it in lam[k]
+                # (two views of one buffer, so one memset per substep clears both)
+                self._vol_buf = wp.zeros(3 * self.iterations + 1, dtype=wp.float64)
+                self._vol_sums = self._vol_buf[: 2 * self.iterations]
+                self._vol_lam = self._vol_buf[2 * self.iterations :]
             self._handle_idx_d = wp.array(self._handle_idx.astype(np.int32), dtype=int) if self.handles else None
         self._planes: list[tuple[np.ndarray, GroundPlane]] = []
         self._mesh_colliders_src: list[MeshCollider] = []
@@ -347,14 +355,14 @@ class PbdBody(Body):
         self._mesh_colliders_src = [c for c in colliders if isinstance(c, MeshCollider)]
         self._layout = None  # rebuild the per-frame buffers and the CUDA graph
 
-    def _upload_family(self, f: ConstraintFamily) -> _DeviceFamily:
+    def _upload_family(self, f: ConstraintFamily, lam: wp.array) -> _DeviceFamily:
         return _DeviceFamily(
             kind=f.kind,
             offsets=f.offsets,
             indices=wp.array(f.indices, dtype=_VEC[f.indices.shape[1]]),
             rest=wp.array(f.rest.astype(np.float32), dtype=float),
             compliance=wp.array(f.compliance.astype(np.float32), dtype=float),
-            lam=wp.zeros(f.count, dtype=float),
+            lam=lam,
         )
 
     def _prepare_layout(self, substeps: int, h: float) -> None:
@@ -383,24 +391,28 @@ class PbdBody(Body):
 
     # ---------------------------------------------------------------- stepping
     def advance(self, t0: float, t1: float) -> None:
-        frame_dt = t1 - t0
+        # (f + 1)/fps - f/fps differs from frame to frame in its last bits; round it so the
+        # per-frame buffers and the CUDA graph (which bakes h in) are built once, not every frame
+        frame_dt = round(t1 - t0, 12)
         substeps = self.substeps_for(frame_dt)
         h = frame_dt / substeps
         if self._layout != (substeps, h):
             self._prepare_layout(substeps, h)
-        self._upload_frame_inputs(t0, substeps, h)
         device = self._device
-        if device.is_cuda and self.use_graph:
-            if self._graph is None:
-                # compile and load modules outside the capture, then record the frame once
-                wp.load_module(kp, device=device)
-                wp.load_module(kc, device=device)
-                with wp.ScopedCapture(device=device) as capture:
-                    self._launch_frame(substeps, h)
-                self._graph = capture.graph
-            wp.capture_launch(self._graph)
-        else:
-            self._launch_frame(substeps, h)
+        # every launch goes to the body's device (Warp's default device may be another one)
+        with wp.ScopedDevice(device):
+            self._upload_frame_inputs(t0, substeps, h)
+            if device.is_cuda and self.use_graph:
+                if self._graph is None:
+                    # compile and load modules outside the capture, then record the frame once
+                    wp.load_module(kp, device=device)
+                    wp.load_module(kc, device=device)
+                    with wp.ScopedCapture(device=device) as capture:
+                        self._launch_frame(substeps, h)
+                    self._graph = capture.graph
+                wp.capture_launch(self._graph)
+            else:
+                self._launch_frame(substeps, h)
 
     def _upload_frame_inputs(self, t0: float, substeps: int, h: float) -> None:
         """Copy this frame's handle targets and collider poses into the fixed device buffers."""
@@ -439,11 +451,10 @@ class PbdBody(Body):
             wp.launch(kp.predict_positions, dim=n, inputs=[self.x, self.v, self.x_prev, self.x_pred, self.inv_mass, self._gravity, self.drag, h])
             if self.handles:
                 wp.launch(kp.set_kinematic_targets, dim=k, inputs=[self.x, self._handle_idx_d, self._handle_targets_d, (s - 1) * k])
-            for fam in self._families:
-                fam.lam.zero_()
+            self._lam.zero_()
             if m.volume is not None:
-                self._vol_lam.zero_()
-            for _ in range(self.iterations):
+                self._vol_buf.zero_()
+            for it in range(self.iterations):
                 for fam in self._families:
                     self._launch_family(fam, h)
                 if m.volume is not None:
@@ -451,22 +462,23 @@ class PbdBody(Body):
                     wp.launch(
                         kp.volume_gradient,
                         dim=m.n_surface,
-                        inputs=[self.x, self.inv_mass, self._faces_d, self._vf_start, self._vf, self._vol_grad, self._vol_sums],
+                        inputs=[self.x, self.inv_mass, self._faces_d, self._vf_start, self._vf, self._vol_grad, self._vol_sums, it],
                     )
                     wp.launch(
-                        kp.volume_multiplier,
-                        dim=1,
+                        kp.volume_apply,
+                        dim=m.n_surface,
                         inputs=[
+                            self.x,
+                            self.inv_mass,
+                            self._vol_grad,
                             self._vol_sums,
+                            self._vol_lam,
+                            it,
                             wp.float64(vol.target_volume),
                             wp.float64(vol.compliance),
-                            wp.float64(self.damping),
                             wp.float64(h),
-                            self._vol_lam,
-                            self._vol_dlam,
                         ],
                     )
-                    wp.launch(kp.volume_apply, dim=m.n_surface, inputs=[self.x, self.inv_mass, self._vol_grad, self._vol_dlam])
                 for normal, plane in self._planes:
                     wp.launch(
                         kc.ground_contact,
@@ -482,7 +494,7 @@ class PbdBody(Body):
             wp.launch(kp.update_velocities, dim=n, inputs=[self.x, self.x_pred, self.v, 1.0 / h])
 
     def check_finite(self, frame: int, time: float) -> None:
-        self.flags.zero_()
+        self.flags.zero_()  # the array's own device
         wp.launch(kp.check_finite, dim=self.model.n_particles, inputs=[self.x, self.v, self.flags], device=self._device)
         bad = self.flags.numpy()
         if bad[0] or bad[1]:
