@@ -89,6 +89,9 @@ def predict_positions(
     x_prev: wp.array(dtype=wp.vec3),
     x_pred: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
+    handle_slot: wp.array(dtype=int),
+    handle_targets: wp.array(dtype=wp.vec3),
+    target_offset: int,
     gravity: wp.vec3,
     drag: float,
     h: float,
@@ -96,8 +99,9 @@ def predict_positions(
     """[PBD] Alg. 1 lines 5-7: v += h g (times the drag decay exp(-drag h)); x_prev = x; x += h v.
 
     The predicted position is kept in ``x_pred`` (see ``update_velocities``). Particles with
-    w = 0 (pinned, kinematic) keep their position and get v = 0 here; kinematic targets are
-    written afterwards by ``set_kinematic_targets``.
+    w = 0 keep their position and get v = 0 (pinned), or jump to their kinematic handle target
+    handle_targets[target_offset + handle_slot[i]] when handle_slot[i] >= 0, with x_pred = x_prev
+    so that the velocity update gives them the handle's velocity.
     """
     i = wp.tid()
     xi = x[i]
@@ -105,24 +109,15 @@ def predict_positions(
     if inv_mass[i] == 0.0:
         v[i] = wp.vec3(0.0)
         x_pred[i] = xi
+        slot = handle_slot[i]
+        if slot >= 0:
+            x[i] = handle_targets[target_offset + slot]
         return
     vi = (v[i] + gravity * h) * wp.exp(-drag * h)
     v[i] = vi
     xn = xi + vi * h
     x[i] = xn
     x_pred[i] = xn
-
-
-@wp.kernel
-def set_kinematic_targets(
-    x: wp.array(dtype=wp.vec3),
-    indices: wp.array(dtype=int),
-    targets: wp.array(dtype=wp.vec3),
-    offset: int,
-):
-    """Write the kinematic handle targets of one substep: x[indices[k]] = targets[offset + k]."""
-    k = wp.tid()
-    x[indices[k]] = targets[offset + k]
 
 
 @wp.kernel
@@ -262,6 +257,10 @@ def solve_tet_volume(
     project4(x, x_prev, inv_mass, lam, c, ids, -(g1 + g2 + g3), g1, g2, g3, C, compliance[c], beta, h)
 
 
+#: threads per block of the volume reduction (one float64 atomic per block and sum)
+VOLUME_BLOCK = 256
+
+
 @wp.kernel
 def volume_gradient(
     x: wp.array(dtype=wp.vec3),
@@ -278,28 +277,35 @@ def volume_gradient(
     V = (1/6) sum_f (x_a - o).((x_b - o) x (x_c - o)); grad_i V = (1/6) sum_{f containing i}
     (x_b - o) x (x_c - o) with (i, b, c) the face read cyclically from i. o = x[0] removes the
     float32 cancellation of a body far from the origin (V and its gradient do not depend on o
-    for a closed surface). V is homogeneous of degree 3 in (x - o), so V = (1/3) sum_i (x_i - o).grad_i V:
-    each thread adds its share, with w_i |grad_i V|^2, to sums[2 slot], sums[2 slot + 1] in float64
-    (the slot of this iteration, zeroed at the start of the substep).
+    for a closed surface). V is homogeneous of degree 3 in (x - o), so V = (1/3) sum_i (x_i - o).grad_i V.
+    The shares and w_i |grad_i V|^2 are summed per block (tile reduction) and added, one float64
+    atomic per block, to sums[2 slot] and sums[2 slot + 1] (this iteration's slot, zeroed each
+    substep): per-thread atomics on two addresses serialized ~30k updates per launch.
+    Launch with dim rounded up to a multiple of VOLUME_BLOCK and block_dim = VOLUME_BLOCK.
     """
     i = wp.tid()
-    o = x[0]
-    g = wp.vec3(0.0)
-    for k in range(vertex_face_start[i], vertex_face_start[i + 1]):
-        f = faces[vertex_faces[k]]
-        b = f[1]
-        c = f[2]
-        if f[1] == i:
-            b = f[2]
-            c = f[0]
-        elif f[2] == i:
-            b = f[0]
-            c = f[1]
-        g = g + wp.cross(x[b] - o, x[c] - o)
-    g = g / 6.0
-    grad[i] = g
-    wp.atomic_add(sums, 2 * slot, wp.float64(wp.dot(x[i] - o, g)) / wp.float64(3.0))
-    wp.atomic_add(sums, 2 * slot + 1, wp.float64(inv_mass[i] * wp.dot(g, g)))
+    share = wp.float64(0.0)
+    w_g2 = wp.float64(0.0)
+    if i < grad.shape[0]:
+        o = x[0]
+        g = wp.vec3(0.0)
+        for k in range(vertex_face_start[i], vertex_face_start[i + 1]):
+            f = faces[vertex_faces[k]]
+            b = f[1]
+            c = f[2]
+            if f[1] == i:
+                b = f[2]
+                c = f[0]
+            elif f[2] == i:
+                b = f[0]
+                c = f[1]
+            g = g + wp.cross(x[b] - o, x[c] - o)
+        g = g / 6.0
+        grad[i] = g
+        share = wp.float64(wp.dot(x[i] - o, g)) / wp.float64(3.0)
+        w_g2 = wp.float64(inv_mass[i] * wp.dot(g, g))
+    wp.tile_atomic_add(sums, wp.tile_sum(wp.tile(share)), offset=2 * slot)
+    wp.tile_atomic_add(sums, wp.tile_sum(wp.tile(w_g2)), offset=2 * slot + 1)
 
 
 @wp.kernel
