@@ -320,3 +320,16 @@ def test_frame_layout_is_built_once(device):
     for _ in range(40):  # frame lengths (f + 1)/30 - f/30 differ in their last bits
         world.step()
     assert body._layout is layout and body._graph is graph
+
+
+def test_auto_tets_come_from_the_cache(tmp_path, monkeypatch):
+    """tets='auto' is built once: a second body of the same mesh loads the tetrahedralization."""
+    cache = wsim.cache.OperatorCache(tmp_path)
+    calls = []
+    real = wmesh.tetrahedralize
+    monkeypatch.setattr(wmesh, "tetrahedralize", lambda *a, **k: calls.append(1) or real(*a, **k))
+    a = wsim.PbdBody(sphere(0.3, 1), name="a", tets="auto", cache=cache)
+    b = wsim.PbdBody(sphere(0.3, 1), name="b", tets="auto", cache=cache)
+    assert len(calls) == 1 and cache.hits == 1
+    assert a.model.n_particles == b.model.n_particles > a.model.n_surface
+    assert np.array_equal(a.model.rest_points, b.model.rest_points)

@@ -175,13 +175,14 @@ class PbdBody(Body):
             if not np.all(np.isfinite(q)):
                 raise InvalidParameter(f"body '{name}': interior_points must be finite")
             points = np.concatenate([vertices, q])
-        if isinstance(tets, str):
+        auto_tets = isinstance(tets, str)
+        if auto_tets:
             if tets != "auto":
                 raise InvalidParameter(f"body '{name}': tets must be None, 'auto' or a (T, 4) array")
             if interior_points is not None:
                 raise InvalidParameter(f"body '{name}': tets='auto' makes its own interior points")
-            points, tets = wmesh.tetrahedralize(vertices, faces, name=f"body '{name}'")
-        has_tets = tets is not None and len(tets) > 0
+        tets_arr = None if (tets is None or auto_tets) else np.asarray(tets, dtype=np.int32).reshape(-1, 4)
+        has_tets = auto_tets or (tets_arr is not None and len(tets_arr) > 0)
         options = dict(
             stretch=bool(stretch),
             bending=(not has_tets) if bending is None else bool(bending),
@@ -197,12 +198,13 @@ class PbdBody(Body):
             mass=mass,
             closed=closed,
         )
-        tets_arr = None if tets is None else np.asarray(tets, dtype=np.int32).reshape(-1, 4)
         springs_arr = None if springs is None else np.asarray(springs, dtype=np.int32).reshape(-1, 2)
 
         def build() -> dict[str, np.ndarray]:
+            # tetrahedralization is the expensive part, so it happens inside the cached build
+            pts, tt = wmesh.tetrahedralize(vertices, faces, name=f"body '{name}'") if auto_tets else (points, tets_arr)
             return build_model(
-                points, faces, len(vertices), self.material, tets=tets_arr, springs=springs_arr, name=name, **options
+                pts, faces, len(vertices), self.material, tets=tt, springs=springs_arr, name=name, **options
             ).to_arrays()
 
         if cache is False:
@@ -217,7 +219,7 @@ class PbdBody(Body):
             arrays = store.get_or_build(
                 "pbd_model",
                 arrays=inputs,
-                params={"material": self.material.as_key(), **options},
+                params={"material": self.material.as_key(), "auto_tets": auto_tets, **options},
                 version=MODEL_FORMAT_VERSION,
                 build=build,
             )
