@@ -1,8 +1,11 @@
 """Particle contact with the World's colliders: ground planes and (kinematic) triangle meshes.
 
 Contact is a position projection after each constraint iteration ([PBD] §3.5, collision
-constraints as inequality constraints with infinite stiffness), followed by position-based
-Coulomb friction (Macklin et al., "Unified Particle Physics for Real-Time Applications",
+constraints as inequality constraints with infinite stiffness). Overlap that already existed at
+the start of the substep (a body placed inside the contact margin, a collider that moved into
+it) is resolved without adding velocity: x_prev and x_pred move with x by that part of the
+correction (pre-stabilization, Macklin et al. 2014 §4.4), so only penetration created during the
+substep turns into a velocity change. Then position-based Coulomb friction (Macklin et al., "Unified Particle Physics for Real-Time Applications",
 SIGGRAPH 2014, Eq. 24): with d the penetration depth just resolved and dx_t the tangential
 displacement of the particle relative to the collider over the substep,
 
@@ -30,10 +33,28 @@ def friction_correction(dx: wp.vec3, n: wp.vec3, depth: float, mu: float) -> wp.
     return -dx_t * (limit / t_len)
 
 
+@wp.func
+def resolve_overlap(
+    x_prev: wp.array(dtype=wp.vec3),
+    x_pred: wp.array(dtype=wp.vec3),
+    i: int,
+    n: wp.vec3,
+    depth: float,
+    depth_prev: float,
+):
+    """Move x_prev and x_pred along n by the part of the correction that was already overlap at
+    the start of the substep (pre-stabilization: it changes positions, not velocities)."""
+    shift = wp.min(depth, wp.max(depth_prev, 0.0))
+    if shift > 0.0:
+        x_prev[i] = x_prev[i] + n * shift
+        x_pred[i] = x_pred[i] + n * shift
+
+
 @wp.kernel
 def ground_contact(
     x: wp.array(dtype=wp.vec3),
     x_prev: wp.array(dtype=wp.vec3),
+    x_pred: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     normal: wp.vec3,
     height: float,
@@ -48,6 +69,7 @@ def ground_contact(
     depth = height + margin - wp.dot(p, normal)
     if depth <= 0.0:
         return
+    resolve_overlap(x_prev, x_pred, i, normal, depth, height + margin - wp.dot(x_prev[i], normal))
     p = p + normal * depth
     p = p + friction_correction(p - x_prev[i], normal, depth, mu)
     x[i] = p
@@ -57,6 +79,7 @@ def ground_contact(
 def mesh_contact(
     x: wp.array(dtype=wp.vec3),
     x_prev: wp.array(dtype=wp.vec3),
+    x_pred: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     mesh: wp.uint64,
     transforms: wp.array(dtype=wp.mat44),
@@ -99,5 +122,8 @@ def mesh_contact(
     # how far the collider surface point moved over this substep
     s_prev = wp.transform_point(transforms[step - 1], s)
     s_now = wp.transform_point(M, s)
+    # overlap at the substep start, against the tangent plane of the contact point then
+    depth_prev = margin - wp.dot(x_prev[i] - s_prev, wp.normalize(wp.transform_vector(transforms[step - 1], n)))
+    resolve_overlap(x_prev, x_pred, i, n_world, depth, depth_prev)
     dx_rel = (target - x_prev[i]) - (s_now - s_prev)
     x[i] = target + friction_correction(dx_rel, n_world, depth, mu)

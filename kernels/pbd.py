@@ -157,20 +157,6 @@ def solve_distance(
     x[j] = x[j] - n * (wj * dl)
 
 
-@wp.func
-def dihedral_angle(w1: wp.vec3, w2: wp.vec3, e0: wp.vec3, e1: wp.vec3) -> float:
-    """Signed dihedral angle [rad] of the hinge (e0, e1) between faces (e0, e1, w1) and (e1, e0, w2).
-
-    theta = atan2((n1^ x n2^) . e^, n1^ . n2^): 0 for a flat hinge, in (-pi, pi].
-    """
-    e = e1 - e0
-    n1 = wp.cross(e, w1 - e0)
-    n2 = wp.cross(e0 - e1, w2 - e1)
-    n1h = wp.normalize(n1)
-    n2h = wp.normalize(n2)
-    return wp.atan2(wp.dot(wp.cross(n1h, n2h), wp.normalize(e)), wp.dot(n1h, n2h))
-
-
 @wp.kernel
 def solve_bending(
     x: wp.array(dtype=wp.vec3),
@@ -186,6 +172,7 @@ def solve_bending(
 ):
     """Dihedral bending, [PBD] §4.2 with the angle gradient of Bridson et al. (SCA 2003):
 
+    theta is the signed angle between the faces (e0, e1, w1) and (e1, e0, w2): 0 for a flat hinge.
     C = theta - theta0 (wrapped to (-pi, pi]); with E = e1 - e0, n1 = E x (w1 - e0),
     n2 = (e0 - e1) x (w2 - e1), and t_k = (w_k - e0).E / |E|^2:
         grad_w1 = -|E| n1/|n1|^2,  grad_w2 = -|E| n2/|n2|^2,
@@ -215,7 +202,8 @@ def solve_bending(
     t2 = wp.dot(w2 - e0, E) / len2
     g3 = -((1.0 - t1) * g1 + (1.0 - t2) * g2)
     g4 = -(t1 * g1 + t2 * g2)
-    C = dihedral_angle(w1, w2, e0, e1) - rest[c]
+    # theta = atan2((n1^ x n2^).E^, n1^.n2^): atan2 is scale-free, so the unnormalized normals do
+    C = wp.atan2(wp.dot(wp.cross(n1, n2), E) / elen, wp.dot(n1, n2)) - rest[c]
     # keep C in (-pi, pi] so a hinge that passes through +-pi is pulled the short way round
     if C > wp.pi:
         C = C - 2.0 * wp.pi

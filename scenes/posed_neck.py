@@ -12,7 +12,6 @@ degrees about the neck), and the tetrahedral XPBD body fills in the stretched, t
 from __future__ import annotations
 
 import numpy as np
-import trimesh
 
 import wsim
 from wsim import mesh as wmesh
@@ -47,7 +46,7 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
     if mesh is None:
         shape = wmesh.neck_body(length=1.6, rings=48, sectors=16)
     else:
-        shape = trimesh.load(mesh, force="mesh")
+        shape = wmesh.load(mesh)
     v = np.asarray(shape.vertices)
     long_axis = np.eye(3)[int(np.argmax(np.ptp(v, axis=0)))]
     u = v @ long_axis

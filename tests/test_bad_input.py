@@ -73,3 +73,69 @@ def test_handle_and_collider_validation():
 def test_dt_gives_whole_substeps_per_frame():
     body = wsim.PbdBody(ico(), dt=0.004)
     assert body.substeps_for(1 / 30) == 9  # ceil(8.33): h = 3.7 ms <= dt
+
+
+def test_closed_but_broken_mesh_is_rejected_even_with_mass():
+    """mass= allows an open surface, not a closed one with flipped faces."""
+    v, f = ico()
+    f = f.copy()
+    f[7] = f[7, ::-1]
+    with pytest.raises(wsim.InvalidMesh, match="orient"):
+        wsim.PbdBody((v, f), name="flip", mass=1.0, volume=False)
+    open_body = wsim.PbdBody((v, f[:-1]), name="cup", mass=1.0, volume=False)  # really open: allowed
+    assert open_body.model.volume is None
+
+
+def test_index_inputs_are_checked():
+    v, f = ico()
+    mask = np.zeros(len(v), dtype=bool)
+    mask[[3, 5, 9]] = True
+    body = wsim.PbdBody((v, f), pinned=mask)  # a boolean mask pins its True entries
+    assert body.pinned.tolist() == [3, 5, 9]
+    with pytest.raises(wsim.InvalidParameter, match="integer indices"):
+        wsim.PbdBody((v, f), pinned=[1.7])
+    with pytest.raises(wsim.InvalidParameter, match=r"\(S, 2\)"):
+        wsim.PbdBody((v, f), springs=np.zeros((2, 3), dtype=int))
+    assert wsim.Handle(mask, lambda t: np.eye(4)).vertices.tolist() == [3, 5, 9]
+
+
+@pytest.mark.parametrize("kwargs, words", [
+    (dict(thickness="a"), "thickness"), (dict(damping=None), "damping"), (dict(mass="a"), "mass"),
+    (dict(contact_margin=float("nan")), "contact_margin"), (dict(inflation=0.0), "inflation"),
+])
+def test_numbers_are_checked(kwargs, words):
+    with pytest.raises(wsim.InvalidParameter, match=words):
+        wsim.PbdBody(ico(), name="n", **kwargs)
+
+
+def test_bad_handle_motion_and_collider_pose_are_named():
+    v, f = ico()
+    world = wsim.World(device="cpu")
+    world.add(wsim.PbdBody((v, f), name="b", handles=[wsim.Handle([0], lambda t: np.full((1, 3), np.nan), name="h")]))
+    with pytest.raises(wsim.InvalidParameter, match="handle 'h'.*non-finite"):
+        world.step()
+    world = wsim.World(device="cpu")
+    world.add_collider(wsim.MeshCollider(trimesh.creation.box(), transform=lambda t: "up", name="lift"))
+    world.add(wsim.PbdBody((v, f), name="b"))
+    with pytest.raises(wsim.InvalidParameter, match="collider 'lift'.*4x4"):
+        world.step()
+
+
+def test_inward_collider_and_unused_tet_particles_are_rejected():
+    box = trimesh.creation.box()
+    with pytest.raises(wsim.InvalidMesh, match="collider 'inside-out'.*inwards"):
+        wsim.MeshCollider((box.vertices, box.faces[:, ::-1]), name="inside-out")
+    sheet = wsim.MeshCollider((box.vertices, box.faces[:10]), name="sheet")  # open: one-sided, allowed
+    assert not sheet.kinematic
+    v, f = ico()
+    interior = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]])
+    tets = np.array([[len(v), f[0, 0], f[0, 1], f[0, 2]]])  # uses interior point 0, not point 1
+    with pytest.raises(wsim.InvalidMesh, match="belong to no tet"):
+        wsim.PbdBody((v, f), tets=tets, interior_points=interior)
+
+
+def test_missing_mesh_file_is_named(tmp_path):
+    from wsim import mesh as wmesh
+
+    with pytest.raises(wsim.InvalidMesh, match="not found"):
+        wmesh.load(tmp_path / "nope.obj")

@@ -113,3 +113,42 @@ def test_world_parameters_are_validated():
         world.add(wsim.PbdBody(trimesh.creation.icosphere(subdivisions=1), name="a"))
     with pytest.raises(wsim.InvalidParameter, match="frames"):
         world.run(0)
+
+
+def test_up_axis_z_world_falls_along_minus_z():
+    world = wsim.World(device="cpu", up_axis="Z")
+    assert np.allclose(world.gravity, (0.0, 0.0, -9.81))
+    world.add_collider(wsim.GroundPlane())
+    body = world.add(wsim.PbdBody(trimesh.creation.icosphere(subdivisions=1, radius=0.2), name="b", position=(0, 0, 1.0)))
+    for _ in range(30):
+        world.step()
+    p = body.points()
+    assert p[:, 2].min() >= -1e-6 and p[:, 2].min() < 0.05  # landed on the z = 0 ground
+    assert np.abs(p[:, 1].mean()) < 1e-3  # and did not slide along y
+
+
+def test_prim_name_clashes_fail_before_simulating(tmp_path):
+    world = wsim.World(device="cpu")
+    world.add_collider(wsim.GroundPlane(name="a b"))
+    world.add_collider(wsim.MeshCollider(trimesh.creation.box(), name="a_b"))
+    world.add(wsim.PbdBody(trimesh.creation.icosphere(subdivisions=1), name="ball"))
+    with pytest.raises(wsim.InvalidParameter, match="collider 'a_b' and collider 'a b'"):
+        world.run(2, tmp_path / "x.usda", progress=False)
+    assert world.frame == 0 and not (tmp_path / "x.usda").exists()
+    world = wsim.World(device="cpu")
+    world.add_collider(wsim.GroundPlane())
+    world.add(wsim.PbdBody(trimesh.creation.icosphere(subdivisions=1), name="colliders"))
+    with pytest.raises(wsim.InvalidParameter, match="colliders scope"):
+        world.run(2, tmp_path / "y.usda", progress=False)
+
+
+def test_written_file_has_a_normal_mode(tmp_path):
+    import os
+    import stat
+
+    world, _ = small_world("cpu")
+    out = tmp_path / "mode.usda"
+    world.run(1, out, progress=False)
+    umask = os.umask(0)
+    os.umask(umask)
+    assert stat.S_IMODE(out.stat().st_mode) == 0o666 & ~umask

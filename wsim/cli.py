@@ -8,8 +8,10 @@ optionally, ``FRAMES`` (its default frame count). It can also run standalone:
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import runpy
+import signal
 import sys
 from pathlib import Path
 from typing import Callable, Sequence
@@ -32,6 +34,12 @@ def _run(build: Callable[..., object], frames_default: int, name: str, args: arg
     from wsim.world import World
 
     out = args.out or f"{name}.usda"
+    before = _mtime(out)
+
+    def on_sigterm(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt  # unwinds through World.run, which saves the frames so far
+
+    signal.signal(signal.SIGTERM, on_sigterm)
     try:
         world = build(mesh=args.mesh, device=args.device)
         if not isinstance(world, World):
@@ -39,13 +47,21 @@ def _run(build: Callable[..., object], frames_default: int, name: str, args: arg
             return 2
         frames = args.frames if args.frames is not None else frames_default
         summary = world.run(frames, out, up_axis=args.up_axis.upper() if args.up_axis else None, progress=not args.no_progress)
-    except WsimError as exc:
-        print(f"wsim: error: {exc}", file=sys.stderr)
-        if Path(out).exists():
-            print(f"wsim: frames computed before the error are in {out}", file=sys.stderr)
-        return 1
+    except (WsimError, KeyboardInterrupt) as exc:
+        reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else f"error: {exc}"
+        print(f"wsim: {reason}", file=sys.stderr)
+        if _mtime(out) != before:  # this run wrote it
+            print(f"wsim: frames computed before that are in {out}", file=sys.stderr)
+        return 1 if isinstance(exc, WsimError) else 130
     print(summary)
     return 0
+
+
+def _mtime(path: str) -> int | None:
+    try:
+        return os.stat(path).st_mtime_ns
+    except OSError:
+        return None
 
 
 def _load_scene(path: str) -> tuple[Callable[..., object], int, str]:

@@ -72,8 +72,11 @@ class GroundPlane(Collider):
 
 
 def _check_matrix(m: np.ndarray, name: str, t: float | None) -> np.ndarray:
-    a = np.asarray(m, dtype=np.float64)
     at = "" if t is None else f" at t = {t:.6g} s"
+    try:
+        a = np.asarray(m, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InvalidParameter(f"collider '{name}': transform{at} must be a finite 4x4 matrix, got {m!r:.60}") from None
     if a.shape != (4, 4) or not np.all(np.isfinite(a)):
         raise InvalidParameter(f"collider '{name}': transform{at} must be a finite 4x4 matrix")
     R = a[:3, :3]
@@ -100,7 +103,10 @@ class MeshCollider(Collider):
     ) -> None:
         self.name = name
         self.vertices, self.faces = wmesh.surface_arrays(mesh, name=f"collider '{name}'")
-        wmesh.check_surface(self.vertices, self.faces, name=f"collider '{name}'", closed=False)
+        # a closed collider must be outward-oriented (inside/outside comes from its normals);
+        # an open one (a terrain sheet) is one-sided, on the side its normals point to
+        closed = len(self.faces) > 0 and not wmesh.has_boundary(self.faces)
+        wmesh.check_surface(self.vertices, self.faces, name=f"collider '{name}'", closed=closed)
         if len(self.faces) == 0:
             raise InvalidParameter(f"collider '{name}': the mesh has no faces")
         self.friction = _check_friction(friction, name)

@@ -25,7 +25,7 @@ class Handle:
     """
 
     def __init__(self, vertices: Sequence[int] | np.ndarray, motion: Callable[[float], np.ndarray], name: str = "handle"):
-        idx = np.asarray(vertices, dtype=np.int64).ravel()
+        idx = as_indices(vertices, f"handle '{name}': vertices")
         if idx.size == 0:
             raise InvalidParameter(f"handle '{name}': no vertices")
         if np.unique(idx).size != idx.size:
@@ -38,11 +38,28 @@ class Handle:
 
     def targets(self, t: float, rest: np.ndarray) -> np.ndarray:
         """(K, 3) target positions at time t, given the (K, 3) rest positions of the handle's vertices."""
-        out = np.asarray(self.motion(t), dtype=np.float64)
+        raw = self.motion(t)
+        try:
+            out = np.asarray(raw, dtype=np.float64)
+        except (TypeError, ValueError):
+            out = np.zeros(0)
         if out.shape == (4, 4):
             out = rest @ out[:3, :3].T + out[:3, 3]
         if out.shape != rest.shape:
             raise InvalidParameter(
-                f"handle '{self.name}': motion({t:.6g}) must return a 4x4 matrix or a {rest.shape} array, got {out.shape}"
+                f"handle '{self.name}': motion({t:.6g}) must return a 4x4 matrix or a {rest.shape} array, got {raw!r:.60}"
             )
+        if not np.all(np.isfinite(out)):
+            raise InvalidParameter(f"handle '{self.name}': motion({t:.6g}) returned non-finite values")
         return out
+
+
+def as_indices(values: Sequence[int] | np.ndarray, what: str) -> np.ndarray:
+    """Integer indices from a list/array of ints, or from a boolean mask (its True positions)."""
+    a = np.asarray(values)
+    if a.dtype == bool:
+        return np.flatnonzero(a.ravel()).astype(np.int64)
+    if a.size and not np.issubdtype(a.dtype, np.integer):
+        if not (np.issubdtype(a.dtype, np.floating) and np.all(np.isfinite(a)) and np.all(a == np.round(a))):
+            raise InvalidParameter(f"{what} must be integer indices or a boolean mask, got {a.dtype} values")
+    return a.astype(np.int64).ravel()

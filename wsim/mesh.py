@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import itertools
 import math
+import os
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -353,6 +355,32 @@ def _check_closed(v: np.ndarray, f: np.ndarray, p: str) -> None:
             f"{p}: normals point inwards: signed volume {vol:.6g} m^3 is not positive; flip the faces "
             f"(reverse the vertex order of every face, e.g. faces[:, ::-1])"
         )
+
+
+def has_boundary(faces: Any) -> bool:
+    """True when some edge is used by only one face (an open surface)."""
+    f = _faces_only(faces)
+    if len(f) == 0:
+        return True
+    n = int(f.max()) + 1
+    keys = _edge_keys(f.reshape(-1), f[:, [1, 2, 0]].reshape(-1), n)
+    _, counts = np.unique(keys, return_counts=True)
+    return bool(np.any(counts == 1))
+
+
+def load(path: str | os.PathLike, name: str | None = None) -> trimesh.Trimesh:
+    """Load a surface mesh file (OBJ, PLY, STL, GLB, ...) as one triangle mesh, or InvalidMesh."""
+    p = Path(path).expanduser()
+    label = name or p.name
+    if not p.is_file():
+        raise InvalidMesh(f"mesh '{label}': file '{p}' not found")
+    try:
+        m = trimesh.load(str(p), force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for unreadable files
+        raise InvalidMesh(f"mesh '{label}': cannot read '{p}': {exc}") from None
+    if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
+        raise InvalidMesh(f"mesh '{label}': '{p}' holds no triangles")
+    return m
 
 
 def check_surface(vertices: Any, faces: Any, name: str = "mesh", *, closed: bool = True) -> None:

@@ -15,7 +15,8 @@ by +-90 degrees about X, so a Y-up scene opens upright in Blender when written w
 
 The stage lives in memory while frames are added; ``close`` exports it to a temporary file in
 the target folder and renames it onto the target, so a reader never sees a half-written file and
-a run that stops early (an error, Ctrl-C) still leaves every frame computed so far.
+a run that stops early with an exception, Ctrl-C or (through the CLI) SIGTERM still leaves every
+frame computed so far. A process killed outright (SIGKILL, out of memory) writes nothing.
 """
 
 from __future__ import annotations
@@ -105,10 +106,6 @@ class UsdWriter:
         self._meshes: dict[str, object] = {}
         self._kinematic: dict[str, object] = {}
 
-    @property
-    def frames_written(self) -> int:
-        return 0 if self._first is None else self._last - self._first + 1  # type: ignore[operator]
-
     def begin(self, bodies: Sequence[Body], colliders: Sequence[Collider], up: np.ndarray) -> None:
         """Create the stage and every prim's static data (topology, static collider geometry)."""
         from pxr import Sdf, Tf, Usd, UsdGeom, Vt
@@ -132,15 +129,20 @@ class UsdWriter:
             mesh.CreateDisplayColorAttr([tuple(color)])
             return mesh
 
-        for body in bodies:
-            path = f"/World/{Tf.MakeValidIdentifier(body.name)}"
-            if path in self._meshes:
-                raise InvalidParameter(f"body names '{body.name}' collide in USD as {path}")
+        # every prim path is decided (and checked for clashes) before anything is written
+        body_paths = [f"/World/{Tf.MakeValidIdentifier(b.name)}" for b in bodies]
+        collider_paths = [f"/World/colliders/{Tf.MakeValidIdentifier(c.name)}" for c in colliders]
+        seen: dict[str, str] = {"/World/colliders": "the colliders scope"} if colliders else {}
+        for path, what in [*zip(body_paths, (f"body '{b.name}'" for b in bodies)),
+                           *zip(collider_paths, (f"collider '{c.name}'" for c in colliders))]:
+            if path in seen:
+                raise InvalidParameter(f"{what} and {seen[path]} would both be written as USD prim {path}; rename one")
+            seen[path] = what
+        for body, path in zip(bodies, body_paths):
             self._meshes[path] = (body, define_mesh(path, body.faces, _BODY_COLOR))
         if colliders:
             UsdGeom.Scope.Define(stage, "/World/colliders")
-        for c in colliders:
-            path = f"/World/colliders/{Tf.MakeValidIdentifier(c.name)}"
+        for c, path in zip(colliders, collider_paths):
             if isinstance(c, GroundPlane):
                 n = c.resolved_normal(up)
                 a = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
@@ -202,6 +204,11 @@ class UsdWriter:
         try:
             if not stage.GetRootLayer().Export(tmp):
                 raise OutputError(f"output '{self.path}': USD could not write the file")
+            with open(tmp, "rb+") as fh:  # on disk before the rename makes it visible
+                os.fsync(fh.fileno())
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(tmp, 0o666 & ~umask)  # mkstemp made it 0600; give it a normal file's mode
             os.replace(tmp, self.path)
         except BaseException:
             if os.path.exists(tmp):

@@ -54,7 +54,7 @@ class World:
 
     Args:
         fps: frames per second of the output animation [1/s].
-        gravity: gravitational acceleration [m/s^2].
+        gravity: gravitational acceleration [m/s^2]; None means 9.81 m/s^2 down the up axis.
         device: Warp device ("cpu", "cuda:0", ...); None picks cuda:0 when present, else cpu.
         up_axis: "Y" or "Z", the axis the scene is built in (ground planes default to it).
     """
@@ -62,7 +62,7 @@ class World:
     def __init__(
         self,
         fps: float = 30.0,
-        gravity: Sequence[float] = (0.0, -9.81, 0.0),
+        gravity: Sequence[float] | None = None,
         device: str | None = None,
         up_axis: str = "Y",
     ) -> None:
@@ -70,10 +70,10 @@ class World:
         if not math.isfinite(fps_f) or fps_f <= 0.0:
             raise InvalidParameter(f"World: fps = {fps} must be > 0")
         self.fps = fps_f
-        self.gravity = as_vec3(gravity, "World: gravity")
-        self.device = resolve_device(device)
         self.up_axis = check_up_axis(up_axis)
         self.up = _UP[self.up_axis]
+        self.gravity = -9.81 * self.up if gravity is None else as_vec3(gravity, "World: gravity")
+        self.device = resolve_device(device)
         self.bodies: list[Body] = []
         self.colliders: list[Collider] = []
         self.frame = 0
@@ -178,5 +178,5 @@ class World:
             wall_seconds=_time.perf_counter() - start,
             out=path,
             device=self.device.alias,
-            bodies={b.name: len(b.points()) for b in self.bodies},
+            bodies={b.name: int(b.faces.max()) + 1 if len(b.faces) else 0 for b in self.bodies},
         )

@@ -29,7 +29,7 @@ from wsim.body import Body
 from wsim.cache import OperatorCache
 from wsim.colliders import Collider, GroundPlane, MeshCollider
 from wsim.errors import InvalidMesh, InvalidParameter, SimulationDiverged
-from wsim.handles import Handle
+from wsim.handles import Handle, as_indices
 from wsim.kernels import contact as kc
 from wsim.kernels import pbd as kp
 from wsim.materials import ElasticMaterial
@@ -60,6 +60,17 @@ class _DeviceMeshCollider:
     max_dist: float
 
 
+def _number(value: object, what: str) -> float:
+    """A finite float, or InvalidParameter naming ``what``."""
+    try:
+        out = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise InvalidParameter(f"{what} must be a number, got {value!r}") from None
+    if not math.isfinite(out):
+        raise InvalidParameter(f"{what} = {out} must be finite")
+    return out
+
+
 def _positive_int(value: int, what: str) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
         raise InvalidParameter(f"{what} = {value!r} must be an integer >= 1")
@@ -88,13 +99,16 @@ class PbdBody(Body):
         stretch_compliance, bend_compliance, volume_compliance, tet_compliance: override the
             material-derived XPBD compliances.
         springs, spring_compliance: extra distance constraints (S, 2) and their compliance [m/N].
-        damping: stiffness-proportional Rayleigh damping beta [s] of every constraint ([XPBD] Eq. 26);
-            it damps deformation only, so it conserves linear and angular momentum.
+        damping: stiffness-proportional Rayleigh damping beta [s] of the edge, bending and tet
+            constraints ([XPBD] Eq. 26; not the global volume constraint): a mode of angular
+            frequency omega gets the damping ratio beta omega / 2. It damps deformation only.
         drag: air drag [1/s] on absolute velocities (does not conserve momentum; default 0).
         mass: total mass [kg] overriding rho * volume.
         pinned: particle indices held at their initial position.
         handles: kinematic ``Handle`` s.
-        contact_margin: distance kept from colliders [m] (default: 10 % of the mean edge length).
+        contact_margin: distance kept from colliders [m] (default 0). With a margin, place the body at
+            least that far from colliders: overlap at the start is removed from the contacting
+            particles without velocity, but the rest of the body still feels it as a push.
         cache: store/load the built model through ``wsim.cache`` (True, False or an ``OperatorCache``).
         use_graph: replay each frame as a CUDA graph on CUDA devices.
     """
@@ -130,7 +144,7 @@ class PbdBody(Body):
         mass: float | None = None,
         pinned: Sequence[int] | np.ndarray | None = None,
         handles: Sequence[Handle] = (),
-        contact_margin: float | None = None,
+        contact_margin: float = 0.0,
         cache: bool | OperatorCache = True,
         use_graph: bool = True,
     ) -> None:
@@ -139,15 +153,13 @@ class PbdBody(Body):
         if not isinstance(self.material, ElasticMaterial):
             raise InvalidParameter(f"body '{name}': material must be a wsim.ElasticMaterial")
         vertices, faces = wmesh.surface_arrays(mesh, name=f"body '{name}'")
-        closed = len(faces) > 0
-        try:
-            wmesh.check_surface(vertices, faces, name=f"body '{name}'", closed=closed)
-        except InvalidMesh:
-            if mass is None or volume:
-                raise
-            # an open surface is allowed when nothing needs an enclosed volume
-            wmesh.check_surface(vertices, faces, name=f"body '{name}'", closed=False)
-            closed = False
+        # A closed surface must be valid as one (watertight, consistently outward). An open surface
+        # (or bare particles) is allowed only when nothing needs an enclosed volume: mass given,
+        # no global volume constraint.
+        closed = len(faces) > 0 and not wmesh.has_boundary(faces)
+        if not closed and (mass is None or volume):
+            wmesh.check_surface(vertices, faces, name=f"body '{name}'", closed=True)  # raises, naming the defect
+        wmesh.check_surface(vertices, faces, name=f"body '{name}'", closed=closed)
 
         if substeps is not None and dt is not None:
             raise InvalidParameter(f"body '{name}': give substeps or dt, not both")
@@ -160,11 +172,15 @@ class PbdBody(Body):
         if dt is None and substeps is None:
             self.substeps = 10
         self.iterations = _positive_int(iterations, f"body '{name}': iterations")
-        for what, val in (("damping", damping), ("drag", drag)):
-            if not math.isfinite(float(val)) or float(val) < 0.0:
+        self.damping = _number(damping, f"body '{name}': damping [s]")
+        self.drag = _number(drag, f"body '{name}': drag [1/s]")
+        for what, val in (("damping", self.damping), ("drag", self.drag)):
+            if val < 0.0:
                 raise InvalidParameter(f"body '{name}': {what} = {val} must be >= 0")
-        self.damping = float(damping)
-        self.drag = float(drag)
+        thickness = None if thickness is None else _number(thickness, f"body '{name}': thickness [m]")
+        mass = None if mass is None else _number(mass, f"body '{name}': mass [kg]")
+        inflation = _number(inflation, f"body '{name}': inflation")
+        spring_compliance = _number(spring_compliance, f"body '{name}': spring_compliance [m/N]")
 
         offset = np.asarray(position, dtype=np.float64)
         if offset.shape != (3,) or not np.all(np.isfinite(offset)):
@@ -181,7 +197,12 @@ class PbdBody(Body):
                 raise InvalidParameter(f"body '{name}': tets must be None, 'auto' or a (T, 4) array")
             if interior_points is not None:
                 raise InvalidParameter(f"body '{name}': tets='auto' makes its own interior points")
-        tets_arr = None if (tets is None or auto_tets) else np.asarray(tets, dtype=np.int32).reshape(-1, 4)
+        tets_arr = None
+        if tets is not None and not auto_tets:
+            tets_arr = np.asarray(tets)
+            if tets_arr.ndim != 2 or tets_arr.shape[1] != 4 or not np.issubdtype(tets_arr.dtype, np.integer):
+                raise InvalidParameter(f"body '{name}': tets must be 'auto' or a (T, 4) array of particle indices")
+            tets_arr = tets_arr.astype(np.int32)
         has_tets = auto_tets or (tets_arr is not None and len(tets_arr) > 0)
         options = dict(
             stretch=bool(stretch),
@@ -198,7 +219,12 @@ class PbdBody(Body):
             mass=mass,
             closed=closed,
         )
-        springs_arr = None if springs is None else np.asarray(springs, dtype=np.int32).reshape(-1, 2)
+        springs_arr = None
+        if springs is not None:
+            springs_arr = np.asarray(springs)
+            if springs_arr.ndim != 2 or springs_arr.shape[1] != 2 or not np.issubdtype(springs_arr.dtype, np.integer):
+                raise InvalidParameter(f"body '{name}': springs must be an (S, 2) array of particle indices")
+            springs_arr = springs_arr.astype(np.int32)
 
         def build() -> dict[str, np.ndarray]:
             # tetrahedralization is the expensive part, so it happens inside the cached build
@@ -219,7 +245,8 @@ class PbdBody(Body):
             arrays = store.get_or_build(
                 "pbd_model",
                 arrays=inputs,
-                params={"material": self.material.as_key(), "auto_tets": auto_tets, **options},
+                # n_surface: the same particles split differently into surface and interior differ
+                params={"material": self.material.as_key(), "auto_tets": auto_tets, "n_surface": len(vertices), **options},
                 version=MODEL_FORMAT_VERSION,
                 build=build,
             )
@@ -230,7 +257,7 @@ class PbdBody(Body):
         kinematic = np.zeros(n, dtype=bool)
         self.pinned = np.zeros(0, dtype=np.int64)
         if pinned is not None:
-            self.pinned = np.unique(np.asarray(pinned, dtype=np.int64).ravel())
+            self.pinned = np.unique(as_indices(pinned, f"body '{name}': pinned"))
             if self.pinned.size and (self.pinned.min() < 0 or self.pinned.max() >= n):
                 raise InvalidParameter(f"body '{name}': pinned indices must lie in [0, {n - 1}]")
             kinematic[self.pinned] = True
@@ -250,12 +277,8 @@ class PbdBody(Body):
         if np.all(kinematic):
             raise InvalidParameter(f"body '{name}': every particle is pinned or driven; nothing to simulate")
 
-        edges = wmesh.edges(faces) if len(faces) else np.zeros((0, 2), dtype=np.int32)
-        mean_edge = (
-            float(np.mean(np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1))) if len(edges) else 0.0
-        )
-        self.contact_margin = 0.1 * mean_edge if contact_margin is None else float(contact_margin)
-        if not math.isfinite(self.contact_margin) or self.contact_margin < 0.0:
+        self.contact_margin = _number(contact_margin, f"body '{name}': contact_margin [m]")
+        if self.contact_margin < 0.0:
             raise InvalidParameter(f"body '{name}': contact_margin = {contact_margin} m must be >= 0")
         self.use_graph = bool(use_graph)
         # CPU dispatch: one serial launch per family instead of one per colour (same result, fewer launches)
@@ -494,13 +517,13 @@ class PbdBody(Body):
                     wp.launch(
                         kc.ground_contact,
                         dim=n,
-                        inputs=[self.x, self.x_prev, self.inv_mass, wp.vec3(*normal.astype(np.float32)), plane.height, self.contact_margin, plane.friction],
+                        inputs=[self.x, self.x_prev, self.x_pred, self.inv_mass, wp.vec3(*normal.astype(np.float32)), plane.height, self.contact_margin, plane.friction],
                     )
                 for dc in self._mesh_colliders:
                     wp.launch(
                         kc.mesh_contact,
                         dim=n,
-                        inputs=[self.x, self.x_prev, self.inv_mass, dc.mesh.id, dc.transforms, dc.inverses, s, self.contact_margin, dc.max_dist, dc.collider.friction],
+                        inputs=[self.x, self.x_prev, self.x_pred, self.inv_mass, dc.mesh.id, dc.transforms, dc.inverses, s, self.contact_margin, dc.max_dist, dc.collider.friction],
                     )
             wp.launch(kp.update_velocities, dim=n, inputs=[self.x, self.x_pred, self.v, 1.0 / h])
 

@@ -106,10 +106,6 @@ class PbdModel:
     def n_particles(self) -> int:
         return int(self.rest_points.shape[0])
 
-    @property
-    def n_constraints(self) -> int:
-        return sum(f.count for f in self.families) + (1 if self.volume is not None else 0)
-
     # -- (de)serialization for the operator cache ------------------------------------------
     def to_arrays(self) -> dict[str, np.ndarray]:
         out: dict[str, np.ndarray] = {
@@ -245,8 +241,12 @@ def build_model(
             raise InvalidMesh(f"body '{name}': tet {bad} has non-positive volume {vt[bad]:.3g} m^3 (inverted or degenerate)")
         m = np.zeros(n)
         np.add.at(m, tets.ravel(), np.repeat(material.rho * vt / 4.0, 4))
-        if np.any(m == 0.0):  # particles no tet reaches (rare): give them the mean particle mass
-            m[m == 0.0] = m[m > 0.0].mean()
+        unused = np.flatnonzero(m == 0.0)
+        if unused.size:  # such a particle would have no mass and no stretch constraint: it would fall out
+            raise InvalidMesh(
+                f"body '{name}': {unused.size} particles belong to no tet (e.g. particle {unused[0]}); "
+                "every surface vertex and interior point must be a tet corner"
+            )
     elif closed and len(faces):
         a = wmesh.vertex_areas(points[:n_surface], faces)
         m = np.zeros(n)

@@ -101,11 +101,15 @@ def _project_volume(model: PbdModel, x, w, lam_v: list[float], h: float) -> None
     x[:n] += grad * (w[:n] * d)[:, None]
 
 
-def _ground(x, x_prev, w, normal, height, margin, mu) -> None:
+def _ground(x, x_prev, x_pred, w, normal, height, margin, mu) -> None:
     depth = height + margin - x @ normal
     hit = (depth > 0.0) & (w > 0.0)
     if not np.any(hit):
         return
+    # pre-stabilization: overlap present at the substep start moves x_prev and x_pred too
+    shift = np.minimum(depth[hit], np.maximum(height + margin - x_prev[hit] @ normal, 0.0))
+    x_prev[hit] += normal * shift[:, None]
+    x_pred[hit] += normal * shift[:, None]
     p = x[hit] + normal * depth[hit, None]
     dx = p - x_prev[hit]
     dx_t = dx - normal * (dx @ normal)[:, None]
@@ -141,9 +145,9 @@ def run_frame(
         v[free] += gravity * h
         v[~free] = 0.0
         x[free] += v[free] * h
+        x_pred = x.copy()  # kinematic particles: x_pred = x_prev, so they get their handle's velocity
         if kinematic is not None:
             x[kinematic[0]] = kinematic[1](s)
-        x_pred = x.copy()
         lams = [np.zeros(f.count) for f in model.families]
         lam_v = [0.0]
         for _ in range(iterations):
@@ -152,5 +156,5 @@ def run_frame(
             if model.volume is not None:
                 _project_volume(model, x, inv_mass, lam_v, h)
             for normal, height, mu in planes:
-                _ground(x, x_prev, inv_mass, normal, height, margin, mu)
+                _ground(x, x_prev, x_pred, inv_mass, normal, height, margin, mu)
         v += (x - x_pred) / h
