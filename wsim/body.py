@@ -14,19 +14,12 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 
 from wsim.errors import InvalidParameter
+from wsim.validate import as_vec3
 
 if TYPE_CHECKING:
     import warp as wp
 
     from wsim.colliders import Collider
-
-
-def as_vec3(value: Sequence[float] | np.ndarray, what: str) -> np.ndarray:
-    """A finite 3-vector as float64, or a clear error naming ``what``."""
-    a = np.asarray(value, dtype=np.float64)
-    if a.shape != (3,) or not np.all(np.isfinite(a)):
-        raise InvalidParameter(f"{what} must be 3 finite numbers, got {value!r}")
-    return a
 
 
 class Body(ABC):

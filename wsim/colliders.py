@@ -14,7 +14,7 @@ import numpy as np
 import warp as wp
 
 from wsim import mesh as wmesh
-from wsim.body import as_vec3
+from wsim.validate import as_vec3
 from wsim.errors import InvalidParameter
 
 TransformLike = Union[np.ndarray, Callable[[float], np.ndarray], None]

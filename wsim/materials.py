@@ -12,16 +12,7 @@ import math
 from dataclasses import dataclass, field
 
 from wsim.errors import InvalidMaterial
-
-
-def _finite_number(value: object, what: str, name: str) -> float:
-    try:
-        out = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        raise InvalidMaterial(f"material '{name}': {what} must be a number, got {value!r}") from None
-    if not math.isfinite(out):
-        raise InvalidMaterial(f"material '{name}': {what} = {out} is not finite")
-    return out
+from wsim.validate import finite_number
 
 
 @dataclass(frozen=True, init=False)
@@ -53,8 +44,8 @@ class ElasticMaterial:
         incompressible: bool = False,
         name: str = "material",
     ) -> None:
-        nu_f = _finite_number(nu, "Poisson's ratio nu", name)
-        rho_f = _finite_number(rho, "density rho [kg/m^3]", name)
+        nu_f = finite_number(nu, f"material '{name}': Poisson's ratio nu", InvalidMaterial)
+        rho_f = finite_number(rho, f"material '{name}': density rho [kg/m^3]", InvalidMaterial)
         if (E is None) == (mu is None):
             raise InvalidMaterial(f"material '{name}': give exactly one of Young's modulus E or shear modulus mu")
         if incompressible:
@@ -66,11 +57,11 @@ class ElasticMaterial:
             hint = " (pass incompressible=True for the nu = 0.5 limit)" if nu_f == 0.5 else ""
             raise InvalidMaterial(f"material '{name}': Poisson's ratio nu = {nu_f} must lie in (-1, 0.5){hint}")
         if E is not None:
-            E_f = _finite_number(E, "Young's modulus E [Pa]", name)
+            E_f = finite_number(E, f"material '{name}': Young's modulus E [Pa]", InvalidMaterial)
             if E_f <= 0.0:
                 raise InvalidMaterial(f"material '{name}': Young's modulus E = {E_f} Pa must be > 0")
         else:
-            mu_f = _finite_number(mu, "shear modulus mu [Pa]", name)
+            mu_f = finite_number(mu, f"material '{name}': shear modulus mu [Pa]", InvalidMaterial)
             if mu_f <= 0.0:
                 raise InvalidMaterial(f"material '{name}': shear modulus mu = {mu_f} Pa must be > 0")
             E_f = 2.0 * mu_f * (1.0 + nu_f)

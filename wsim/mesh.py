@@ -916,7 +916,6 @@ def _linked_components(points: np.ndarray, link: float, k: int = 8) -> np.ndarra
     Looking at only k neighbours may split a group in two (costing one more winding-number
     evaluation), but never joins points farther apart than ``link``.
     """
-    n = points.shape[0]
     ijk = np.floor((points - points.min(axis=0)) / (0.5 * link)).astype(np.int64)
     _, first, cell_of = np.unique(ijk, axis=0, return_index=True, return_inverse=True)
     reps = points[first]

@@ -16,7 +16,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from wsim.body import Body, as_vec3
+from wsim.body import Body
+from wsim.validate import as_vec3
 from wsim.colliders import Collider
 from wsim.device import resolve_device
 from wsim.errors import InvalidParameter

@@ -28,8 +28,9 @@ from wsim import mesh as wmesh
 from wsim.body import Body
 from wsim.cache import OperatorCache
 from wsim.colliders import Collider, GroundPlane, MeshCollider
-from wsim.errors import InvalidMesh, InvalidParameter, SimulationDiverged
+from wsim.errors import InvalidParameter, SimulationDiverged
 from wsim.handles import Handle, as_indices
+from wsim.validate import as_vec3, finite_number
 from wsim.kernels import contact as kc
 from wsim.kernels import pbd as kp
 from wsim.materials import ElasticMaterial
@@ -58,17 +59,6 @@ class _DeviceMeshCollider:
     host_transforms: np.ndarray  # (S + 1, 4, 4) float32 staging
     host_inverses: np.ndarray
     max_dist: float
-
-
-def _number(value: object, what: str) -> float:
-    """A finite float, or InvalidParameter naming ``what``."""
-    try:
-        out = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        raise InvalidParameter(f"{what} must be a number, got {value!r}") from None
-    if not math.isfinite(out):
-        raise InvalidParameter(f"{what} = {out} must be finite")
-    return out
 
 
 def _positive_int(value: int, what: str) -> int:
@@ -172,19 +162,17 @@ class PbdBody(Body):
         if dt is None and substeps is None:
             self.substeps = 10
         self.iterations = _positive_int(iterations, f"body '{name}': iterations")
-        self.damping = _number(damping, f"body '{name}': damping [s]")
-        self.drag = _number(drag, f"body '{name}': drag [1/s]")
+        self.damping = finite_number(damping, f"body '{name}': damping [s]")
+        self.drag = finite_number(drag, f"body '{name}': drag [1/s]")
         for what, val in (("damping", self.damping), ("drag", self.drag)):
             if val < 0.0:
                 raise InvalidParameter(f"body '{name}': {what} = {val} must be >= 0")
-        thickness = None if thickness is None else _number(thickness, f"body '{name}': thickness [m]")
-        mass = None if mass is None else _number(mass, f"body '{name}': mass [kg]")
-        inflation = _number(inflation, f"body '{name}': inflation")
-        spring_compliance = _number(spring_compliance, f"body '{name}': spring_compliance [m/N]")
+        thickness = None if thickness is None else finite_number(thickness, f"body '{name}': thickness [m]")
+        mass = None if mass is None else finite_number(mass, f"body '{name}': mass [kg]")
+        inflation = finite_number(inflation, f"body '{name}': inflation")
+        spring_compliance = finite_number(spring_compliance, f"body '{name}': spring_compliance [m/N]")
 
-        offset = np.asarray(position, dtype=np.float64)
-        if offset.shape != (3,) or not np.all(np.isfinite(offset)):
-            raise InvalidParameter(f"body '{name}': position must be 3 finite numbers")
+        offset = as_vec3(position, f"body '{name}': position")
         points = vertices
         if interior_points is not None:
             q = np.asarray(interior_points, dtype=np.float64).reshape(-1, 3)
@@ -277,7 +265,7 @@ class PbdBody(Body):
         if np.all(kinematic):
             raise InvalidParameter(f"body '{name}': every particle is pinned or driven; nothing to simulate")
 
-        self.contact_margin = _number(contact_margin, f"body '{name}': contact_margin [m]")
+        self.contact_margin = finite_number(contact_margin, f"body '{name}': contact_margin [m]")
         if self.contact_margin < 0.0:
             raise InvalidParameter(f"body '{name}': contact_margin = {contact_margin} m must be >= 0")
         self.use_graph = bool(use_graph)

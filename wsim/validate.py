@@ -1,0 +1,36 @@
+"""Small checks for user input, shared by every public constructor.
+
+Each raises the wsim error class its caller names, with a message that names the object and the
+quantity, so a scene script says exactly what to fix.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+
+from wsim.errors import InvalidParameter, WsimError
+
+
+def finite_number(value: object, what: str, error: type[WsimError] = InvalidParameter) -> float:
+    """``value`` as a finite float, or ``error`` naming ``what``."""
+    try:
+        out = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise error(f"{what} must be a number, got {value!r}") from None
+    if not math.isfinite(out):
+        raise error(f"{what} = {out} is not finite")
+    return out
+
+
+def as_vec3(value: Sequence[float] | np.ndarray, what: str) -> np.ndarray:
+    """A finite 3-vector as float64, or InvalidParameter naming ``what``."""
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        a = np.zeros(0)
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        raise InvalidParameter(f"{what} must be 3 finite numbers, got {value!r}")
+    return a
