@@ -41,8 +41,8 @@ def head_motion(pivot: np.ndarray, long_axis: np.ndarray, bend_axis: np.ndarray)
     return motion
 
 
-def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
-    world = wsim.World(fps=30, gravity=(0.0, -9.81, 0.0), device=device)
+def make_body(mesh: str | None = None, name: str = "creature") -> wsim.PbdBody:
+    """The posed creature: torso pinned, head driven by a handle, tetrahedral XPBD body."""
     if mesh is None:
         shape = wmesh.neck_body(length=1.6, rings=48, sectors=16)
     else:
@@ -57,18 +57,21 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
     bend_axis = np.cross(long_axis, [0.0, 1.0, 0.0])
     if np.linalg.norm(bend_axis) < 1e-6:
         bend_axis = np.array([0.0, 0.0, 1.0])
-    world.add(
-        wsim.PbdBody(
-            shape,
-            wsim.ElasticMaterial(E=3.0e5, nu=0.4, rho=1000.0),
-            name="creature",
-            tets="auto",
-            pinned=torso,
-            handles=[wsim.Handle(head, head_motion(pivot, long_axis, bend_axis), name="head")],
-            substeps=10,
-            iterations=2,
-        )
+    return wsim.PbdBody(
+        shape,
+        wsim.ElasticMaterial(E=3.0e5, nu=0.4, rho=1000.0),
+        name=name,
+        tets="auto",
+        pinned=torso,
+        handles=[wsim.Handle(head, head_motion(pivot, long_axis, bend_axis), name="head")],
+        substeps=10,
+        iterations=2,
     )
+
+
+def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
+    world = wsim.World(fps=30, gravity=(0.0, -9.81, 0.0), device=device)
+    world.add(make_body(mesh))
     return world
 
 

@@ -18,7 +18,7 @@ def run_cli(*args: str) -> subprocess.CompletedProcess:
     )
 
 
-@pytest.mark.parametrize("scene, frames", [("soft_drop", 3), ("posed_neck", 2)])
+@pytest.mark.parametrize("scene, frames", [("soft_drop", 3), ("posed_neck", 2), ("pbd_reconstruction", 2)])
 def test_scene_runs_and_writes_usd(tmp_path, scene, frames):
     out = tmp_path / f"{scene}.usda"
     res = run_cli("run", f"scenes/{scene}.py", "-o", str(out), "--frames", str(frames), "--device", "cpu", "--no-progress")

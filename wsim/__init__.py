@@ -22,6 +22,7 @@ from wsim.errors import (
 from wsim.handles import Handle
 from wsim.materials import ElasticMaterial
 from wsim.pbd.body import PbdBody
+from wsim.pbd.reconstruction import PbdReconstruction, PbdRecording, record
 from wsim.world import RunSummary, World
 
 try:
@@ -36,6 +37,9 @@ __all__ = [
     "RunSummary",
     "Body",
     "PbdBody",
+    "PbdReconstruction",
+    "PbdRecording",
+    "record",
     "ElasticMaterial",
     "Collider",
     "GroundPlane",
