@@ -36,3 +36,18 @@ def test_info_and_errors(tmp_path):
     assert res.returncode == 1 and "does not exist" in res.stderr
     res = run_cli("run", "scenes/no_such_scene.py")
     assert res.returncode != 0 and "not found" in res.stderr
+
+
+def test_reconstruction_study_quick_prints_the_agreed_json():
+    res = subprocess.run(
+        [sys.executable, "tools/study_pbd_reconstruction.py", "--quick", "--stride", "10"],
+        cwd=ROOT, capture_output=True, text=True, timeout=600,
+    )
+    assert res.returncode == 0, res.stderr
+    import json
+
+    rows = [json.loads(line) for line in res.stdout.splitlines() if line.startswith("{")]
+    assert {r["method"] for r in rows} == {"pde", "bezier", "bspline", "linear"}
+    for r in rows:
+        assert {"method", "stride", "data_ratio", "keyframe_err", "inbetween_err", "seconds_per_frame", "device"} <= r.keys()
+        assert r["stride"] == 10 and r["device"] == "cpu" and 0 < r["data_ratio"] < 1 and r["inbetween_err"] < 0.2
