@@ -36,43 +36,47 @@ SIZES = {"1k": (52, 24), "5k": (104, 48), "15k": (320, 48), "50k": (530, 96)}  #
 PAPER_15K_SECONDS_100_FRAMES = 6.42
 
 
+def posed_body(size: str, *, tets: bool = False, substeps: int = 10, iterations: int = 2, use_graph: bool = True):
+    """The posed-model workload at ``size``: the creature of scenes/posed_neck.py at another
+    resolution, torso pinned, head raised and twisted by a handle (shared by the tools)."""
+    import numpy as np
+
+    import wsim
+    from wsim import mesh as wmesh
+
+    sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "scenes"))
+    import posed_neck
+
+    rings, sectors = SIZES[size]
+    shape = wmesh.neck_body(length=1.6, rings=rings, sectors=sectors)
+    u = np.asarray(shape.vertices)[:, 0]
+    motion = posed_neck.head_motion(np.array([0.45 * 1.6, 0.0, 0.0]), np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]))
+    return wsim.PbdBody(
+        shape,
+        wsim.ElasticMaterial(E=3.0e5, nu=0.4, rho=1000.0),
+        name="creature",
+        tets="auto" if tets else None,
+        pinned=np.flatnonzero(u < 0.40 * 1.6),
+        handles=[wsim.Handle(np.flatnonzero(u > 0.85 * 1.6), motion, name="head")],
+        substeps=substeps,
+        iterations=iterations,
+        cache=False,
+        use_graph=use_graph,
+    )
+
+
 def run_case(size: str, tets: bool, device: str | None, frames: int, reference_frames: int) -> dict:
     import numpy as np
     import warp as wp
 
     import wsim
-    from wsim import mesh as wmesh
     from wsim.device import quiet_warp
     from wsim.pbd import reference
 
     quiet_warp()
-    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "scenes"))
-    import posed_neck  # the scene's handle motion
-
-    rings, sectors = SIZES[size]
-    shape = wmesh.neck_body(length=1.6, rings=rings, sectors=sectors)
-    v = np.asarray(shape.vertices)
-    u = v[:, 0]
-    torso = np.flatnonzero(u < 0.40 * 1.6)
-    head = np.flatnonzero(u > 0.85 * 1.6)
-    pivot = np.array([0.45 * 1.6, 0.0, 0.0])
-    motion = posed_neck.head_motion(pivot, np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]))
-
     world = wsim.World(fps=30, device=device)
     t0 = time.perf_counter()
-    body = world.add(
-        wsim.PbdBody(
-            shape,
-            wsim.ElasticMaterial(E=3.0e5, nu=0.4, rho=1000.0),
-            name="creature",
-            tets="auto" if tets else None,
-            pinned=torso,
-            handles=[wsim.Handle(head, motion, name="head")],
-            substeps=10,
-            iterations=2,
-            cache=False,
-        )
-    )
+    body = world.add(posed_body(size, tets=tets))
     build = time.perf_counter() - t0
     dev = world.device
     t0 = time.perf_counter()
@@ -116,6 +120,7 @@ def run_case(size: str, tets: bool, device: str | None, frames: int, reference_f
         x = body.particles()
         vel = body.velocities()
         inv_mass = np.where(body._kinematic_mask, 0.0, 1.0 / body.masses)
+        head = body.handles[0].vertices
         rest_head = body.rest_points[head]
         f0 = world.frame
 
@@ -154,34 +159,15 @@ def run_sweep(size: str, device: str | None, frames: int) -> list[dict]:
     import warp as wp
 
     import wsim
-    from wsim import mesh as wmesh
     from wsim.device import quiet_warp
 
     quiet_warp()
-    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "scenes"))
-    import posed_neck
-
-    rings, sectors = SIZES[size]
-    shape = wmesh.neck_body(length=1.6, rings=rings, sectors=sectors)
-    u = np.asarray(shape.vertices)[:, 0]
-    torso, head = np.flatnonzero(u < 0.40 * 1.6), np.flatnonzero(u > 0.85 * 1.6)
-    motion = posed_neck.head_motion(np.array([0.72, 0.0, 0.0]), np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]))
+    shape_vertices = posed_body(size).rest_points
     checks = {frames // 4, frames // 2, 3 * frames // 4, frames}
 
     def simulate(substeps: int, iterations: int) -> tuple[dict[int, np.ndarray], float, str]:
         world = wsim.World(fps=30, device=device)
-        world.add(
-            wsim.PbdBody(
-                shape,
-                wsim.ElasticMaterial(E=3.0e5, nu=0.4, rho=1000.0),
-                name="creature",
-                pinned=torso,
-                handles=[wsim.Handle(head, motion, name="head")],
-                substeps=substeps,
-                iterations=iterations,
-                cache=False,
-            )
-        )
+        world.add(posed_body(size, substeps=substeps, iterations=iterations))
         body = world.bodies[0]
         world.step()
         wp.synchronize_device(world.device)
@@ -195,7 +181,7 @@ def run_sweep(size: str, device: str | None, frames: int) -> list[dict]:
         return snaps, statistics.median(times), world.device.alias
 
     ref, _, dev = simulate(*SWEEP_REFERENCE)
-    diag = float(np.linalg.norm(np.ptp(np.asarray(shape.vertices), axis=0)))
+    diag = float(np.linalg.norm(np.ptp(shape_vertices, axis=0)))
     out = []
     for substeps, iterations in SWEEP:
         snaps, spf, _ = simulate(substeps, iterations)
@@ -204,7 +190,7 @@ def run_sweep(size: str, device: str | None, frames: int) -> list[dict]:
             {
                 "case": f"sweep-{size}",
                 "device": dev,
-                "vertices": len(shape.vertices),
+                "vertices": len(shape_vertices),
                 "substeps": substeps,
                 "iterations": iterations,
                 "seconds_per_frame": spf,

@@ -14,37 +14,18 @@ import sys
 import time
 from collections import defaultdict
 
-import numpy as np
 import warp as wp
 
 sys.path.insert(0, os.path.dirname(__file__))
 import bench_pbd  # noqa: E402
 
 import wsim  # noqa: E402
-from wsim import mesh as wmesh  # noqa: E402
 from wsim.device import quiet_warp  # noqa: E402
 
 
 def build(size: str, use_graph: bool, device: str) -> tuple[wsim.World, wsim.PbdBody]:
-    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "scenes"))
-    import posed_neck
-
-    rings, sectors = bench_pbd.SIZES[size]
-    shape = wmesh.neck_body(length=1.6, rings=rings, sectors=sectors)
-    u = np.asarray(shape.vertices)[:, 0]
-    motion = posed_neck.head_motion(np.array([0.72, 0.0, 0.0]), np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]))
     world = wsim.World(fps=30, device=device)
-    body = world.add(
-        wsim.PbdBody(
-            shape,
-            wsim.ElasticMaterial(E=3.0e5, nu=0.4, rho=1000.0),
-            name="creature",
-            pinned=np.flatnonzero(u < 0.64),
-            handles=[wsim.Handle(np.flatnonzero(u > 1.36), motion)],
-            cache=False,
-            use_graph=use_graph,
-        )
-    )
+    body = world.add(bench_pbd.posed_body(size, use_graph=use_graph))
     return world, body
 
 

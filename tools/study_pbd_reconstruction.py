@@ -45,24 +45,9 @@ def posed_recording(size: str | None, device: str | None, frames: int) -> wsim.P
         world = posed_neck.build(device=device)
     else:
         import bench_pbd
-        from wsim import mesh as wmesh
 
-        rings, sectors = bench_pbd.SIZES[size]
-        shape = wmesh.neck_body(length=1.6, rings=rings, sectors=sectors)
-        u = np.asarray(shape.vertices)[:, 0]
-        motion = posed_neck.head_motion(np.array([0.72, 0.0, 0.0]), np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]))
         world = wsim.World(fps=30, device=device)
-        world.add(
-            wsim.PbdBody(
-                shape,
-                wsim.ElasticMaterial(E=3.0e5, nu=0.4, rho=1000.0),
-                name="creature",
-                pinned=np.flatnonzero(u < 0.64),
-                handles=[wsim.Handle(np.flatnonzero(u > 1.36), motion, name="head")],
-                substeps=20,
-                iterations=2,
-            )
-        )
+        world.add(bench_pbd.posed_body(size, substeps=20))
     return wsim.record(world, world.bodies[0], frames)
 
 
