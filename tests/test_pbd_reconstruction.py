@@ -306,3 +306,20 @@ def test_bad_reconstruction_input_is_named():
 def test_kernel_module_compiles_once(device):
     """The reconstruction kernels live in one Warp module (compiled once per device)."""
     wp.load_module(kr, device=device)
+
+
+def test_closed_user_curves():
+    """Rings of a surface of revolution as closed user curves: each ring is fitted with its first
+    vertex repeated at u = 1 (as the paper does) and every vertex is rebuilt."""
+    mesh = wmesh.neck_body(rings=12, sectors=8)
+    v = np.asarray(mesh.vertices)
+    rings = [np.flatnonzero(np.isclose(v[:, 0], x)) for x in np.unique(v[:, 0])]
+    curves = [Curve(r[np.argsort(np.arctan2(v[r, 2], v[r, 1]))], closed=True) for r in rings]
+    assert [len(c.indices) for c in curves].count(1) == 2  # the poles: single-vertex curves, fitted exactly
+    t = np.linspace(0.0, 1.0, 5)[:, None, None]
+    frames = v[None] * (1.0 + 0.1 * t * np.sin(3.0 * v[None, :, 0:1])) + 0.05 * t  # swelling neck, drifting body
+    for method in ("pde", "bezier"):
+        r = pf.fit(frames, v, 2, method=method, curves=curves)
+        assert r.layout.index.shape[1] == max(len(c.indices) for c in curves) + 1  # closing point added
+        err = max(np.abs(r.evaluate(f) - frames[f]).max() for f in range(len(frames)))
+        assert err < 0.05 * np.linalg.norm(np.ptp(v, axis=0))

@@ -49,8 +49,8 @@ def validate_curves(curves: Sequence[Curve | Sequence[int]], n_vertices: int, cl
         idx = np.asarray(cv.indices)
         if idx.ndim != 1 or not np.issubdtype(idx.dtype, np.integer):
             raise InvalidParameter(f"curve {i}: must be a list of integer vertex indices")
-        if idx.size < 2:
-            raise InvalidParameter(f"curve {i}: needs at least 2 vertices, has {idx.size}")
+        if idx.size == 0:
+            raise InvalidParameter(f"curve {i}: is empty")
         if idx.min() < 0 or idx.max() >= n_vertices:
             bad = int(idx[(idx < 0) | (idx >= n_vertices)][0])
             raise InvalidParameter(f"curve {i}: vertex index {bad} is out of range [0, {n_vertices - 1}]")
@@ -58,7 +58,7 @@ def validate_curves(curves: Sequence[Curve | Sequence[int]], n_vertices: int, cl
             vals, counts = np.unique(idx, return_counts=True)
             raise InvalidParameter(f"curve {i}: vertex {int(vals[counts > 1][0])} appears more than once")
         seen[idx] = True
-        out.append(Curve(idx.astype(np.int64), bool(cv.closed)))
+        out.append(Curve(idx.astype(np.int64), bool(cv.closed) and idx.size > 2))  # a closed curve needs 3 vertices
     if not seen.all():
         missing = np.flatnonzero(~seen)
         raise InvalidParameter(
