@@ -1,0 +1,1 @@
+"""Surface-only elastodynamic BEM (Sugimoto, Batty, Hachisuka): kernels, convolution quadrature, operators."""

@@ -1,0 +1,83 @@
+"""Convolution quadrature (Lubich) weights, paper Eq. (15).
+
+A convolution y(t) = int_0^t f(t - tau) g(tau) dtau whose kernel is known by its Laplace
+transform f_hat(s) is approximated at t_n = n dt by y_n = sum_k psi_k g_{n-k}, with
+
+    psi_k = R^-k / L * sum_{l=0}^{L-1} f_hat(gamma(R zeta^l) / dt) zeta^(-k l),   zeta = e^(2 pi i / L),
+
+gamma the generating polynomial of a linear multistep method (BDF1: 1 - z; BDF2:
+3/2 - 2z + z^2/2), R = eps^(1 / (2 n_max)) and eps = 1e-10 (Schanz & Antes). The DFT is
+L-periodic in k, so k = 0..n_max needs L = n_max + 1 samples: with the paper's printed L = n_max
+the last weight would alias psi_0 multiplied by R^-L = 1e5.
+
+For a real kernel f_hat(conj s) = conj f_hat(s): sample l and sample L - l are conjugates, so only
+l = 0..floor(L/2) are evaluated (the expensive part for BEM: one Laplace-domain assembly each),
+and the weights are real.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from wsim.errors import InvalidParameter
+
+GAMMA = {
+    "bdf1": lambda z: 1.0 - z,
+    "bdf2": lambda z: 1.5 - 2.0 * z + 0.5 * z**2,
+}
+
+
+def n_max_for(r_max: float, c2: float, dt: float) -> int:
+    """History length n_max = floor(r_max / (c2 dt) + 2): the kernels vanish after t = r_max / c2."""
+    return int(np.floor(r_max / (c2 * dt) + 2.0))
+
+
+def sample_points(dt: float, n_max: int, method: str = "bdf1", eps: float = 1e-10) -> tuple[np.ndarray, float, int]:
+    """The Laplace-domain frequencies s_l = gamma(R zeta^l) / dt for l = 0..floor(L/2), with R and L."""
+    if method not in GAMMA:
+        raise InvalidParameter(f"CQ method = {method!r} must be one of {', '.join(GAMMA)}")
+    if not (dt > 0.0 and np.isfinite(dt)):
+        raise InvalidParameter(f"dt = {dt} s must be > 0")
+    if n_max < 1:
+        raise InvalidParameter(f"n_max = {n_max} must be >= 1")
+    L = n_max + 1
+    R = eps ** (1.0 / (2.0 * n_max))
+    l = np.arange(L // 2 + 1)
+    zeta = np.exp(2j * np.pi * l / L)
+    return GAMMA[method](R * zeta) / dt, R, L
+
+
+def combine(samples: np.ndarray, R: float, L: int, n_max: int) -> np.ndarray:
+    """psi_k, k = 0..n_max, from f_hat at the half set of samples (leading axis l = 0..floor(L/2)).
+
+    The missing samples are the conjugates: f_hat(s_{L-l}) = conj(f_hat(s_l)). Returns real weights
+    with the sample axis replaced by k.
+    """
+    samples = np.asarray(samples)
+    half = L // 2 + 1
+    if samples.shape[0] != half:
+        raise ValueError(f"expected {half} samples, got {samples.shape[0]}")
+    full = np.concatenate([samples, np.conj(samples[1 : L - half + 1][::-1])], axis=0)  # l = 0..L-1
+    k = np.arange(n_max + 1)
+    l = np.arange(L)
+    W = np.exp(-2j * np.pi * np.outer(k, l) / L) * (R ** (-k.astype(np.float64)))[:, None] / L  # (n_max + 1, L)
+    out = np.tensordot(W, full, axes=(1, 0))
+    return out.real
+
+
+def weights(f_hat: Callable[[np.ndarray], np.ndarray], dt: float, n_max: int, method: str = "bdf1", eps: float = 1e-10) -> np.ndarray:
+    """psi_k(f_hat), k = 0..n_max, for a scalar or array-valued f_hat (vectorized over s)."""
+    s, R, L = sample_points(dt, n_max, method, eps)
+    values = np.stack([np.asarray(f_hat(si)) for si in s])
+    return combine(values, R, L, n_max)
+
+
+def convolve(psi: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """y_n = sum_{k=0}^{min(n, n_max)} psi_k g_{n-k} for scalar weights and samples g_0..g_N."""
+    g = np.asarray(g, dtype=np.float64)
+    y = np.zeros_like(g)
+    for k, w in enumerate(psi):
+        y[k:] += w * g[: len(g) - k]
+    return y
