@@ -248,15 +248,19 @@ def signed_volume(vertices: Any, faces: Any) -> float:
     return float(np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0)
 
 
+def face_areas(vertices: Any, faces: Any) -> np.ndarray:
+    """Area [m^2] of each triangle, shape (M,)."""
+    a, b, c = _corners(np.asarray(vertices, dtype=np.float64), np.asarray(faces))
+    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+
+
 def vertex_areas(vertices: Any, faces: Any) -> np.ndarray:
     """Lumped area [m^2] of each vertex: one third of the area of every incident face, shape (N,)."""
-    v = np.asarray(vertices, dtype=np.float64)
+    n = np.asarray(vertices).shape[0]
     f = np.asarray(faces)
-    n = v.shape[0]
     if f.size == 0:
         return np.zeros(n, dtype=np.float64)
-    a, b, c = _corners(v, f)
-    third = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1) / 3.0
+    third = face_areas(vertices, f) / 3.0
     return np.bincount(f.reshape(-1), weights=np.repeat(third, 3), minlength=n)
 
 

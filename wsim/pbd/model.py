@@ -278,7 +278,7 @@ def build_model(
             alpha = length**2 / (E * ve)
         else:
             uniq = wmesh.edges(faces)
-            area = _face_areas(points, faces)
+            area = wmesh.face_areas(points, faces)
             fe = np.sort(np.stack([faces[:, [0, 1, 2]].ravel(), faces[:, [1, 2, 0]].ravel()], axis=1), axis=1)
             key_u = uniq[:, 0].astype(np.int64) * n + uniq[:, 1]
             key_f = fe[:, 0].astype(np.int64) * n + fe[:, 1]
@@ -347,8 +347,3 @@ def build_model(
         families=tuple(families),
         volume=vol,
     )
-
-
-def _face_areas(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    p = points[faces]
-    return 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
