@@ -78,3 +78,15 @@ def test_history_length_and_bad_input():
             cq.sample_points(**bad)
     with pytest.raises(wsim.InvalidParameter, match="bdf3"):
         cq.sample_points(0.01, 5, "bdf3")
+
+
+@pytest.mark.parametrize("n_max", [5, 6])  # odd and even L
+def test_half_weights_are_the_combine_sum(n_max):
+    """The weights the Warp CQ kernel applies per sample give exactly ``combine``'s result."""
+    dt = 0.01
+    s, R, L = cq.sample_points(dt, n_max)
+    f = np.exp(-0.03 * s) / (s + 2.0)
+    W = cq.half_weights(R, L, n_max)
+    ref = cq.combine(f, R, L, n_max)
+    # both sums carry R^-k (up to 1/sqrt(eps) = 1e5): agreement to 1e-16 * 1e5
+    np.testing.assert_allclose(np.real(W.T @ f), ref, rtol=1e-10, atol=1e-12 * np.abs(ref).max())

@@ -67,6 +67,20 @@ def combine(samples: np.ndarray, R: float, L: int, n_max: int) -> np.ndarray:
     return out.real
 
 
+def half_weights(R: float, L: int, n_max: int) -> np.ndarray:
+    """(floor(L/2) + 1, n_max + 1) complex W with psi_k = Re sum_l W[l, k] f_hat(s_l) over the half set.
+
+    W[l, k] = m_l R^-k zeta^(-k l) / L, where m_l = 2 for samples whose conjugate partner L - l is
+    skipped and 1 for l = 0 and (L even) l = L / 2. This is what the Warp CQ kernel applies to each
+    assembled Laplace-domain matrix; ``combine`` is the same sum done explicitly.
+    """
+    half = L // 2 + 1
+    l = np.arange(half)
+    k = np.arange(n_max + 1)
+    mult = np.where((l == 0) | (2 * l == L), 1.0, 2.0)
+    return mult[:, None] * np.exp(-2j * np.pi * np.outer(l, k) / L) * (R ** (-k.astype(np.float64)))[None, :] / L
+
+
 def weights(f_hat: Callable[[np.ndarray], np.ndarray], dt: float, n_max: int, method: str = "bdf1", eps: float = 1e-10) -> np.ndarray:
     """psi_k(f_hat), k = 0..n_max, for a scalar or array-valued f_hat (vectorized over s)."""
     s, R, L = sample_points(dt, n_max, method, eps)

@@ -1,0 +1,296 @@
+"""The precomputed operator set of one BEM body (paper Sec. 3, Fig. 2 "precomputation").
+
+For one (mesh, material, dt, options):
+
+1. the Laplace-domain matrices at the CQ samples s_l = gamma(R zeta^l) / dt, l = 0..floor(L/2)
+   (``wsim.bem.assembly``, Warp), row block by row block so device memory is never exceeded;
+2. after each sample, the CQ weights of Eq. (15) folded into real H_k, G_k (k = 0..n_max) on the
+   device (``cq_accumulate``); D_k, Q_k (3N x 3) on the host;
+3. mass properties and A, C of Eq. (10) (``wsim.bem.mass``);
+4. the LU factorization of H_0, H_0^-1, G' = G_0 + D_0 A + Q_0 C and H_0^-1 G' (scipy LAPACK,
+   float64), used by the time stepping of Eq. (12).
+
+Precision: every Laplace-domain sum and the CQ accumulation are float64; the stored H_k, G_k,
+H_0^-1 and H_0^-1 G' are float32 (default, halves memory and bandwidth) or float64; the LU
+factors, D_k, Q_k, A and C stay float64. The set is cached by content hash through
+``wsim.cache``: a second build with the same inputs loads it instead.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import scipy.linalg
+import warp as wp
+from scipy.spatial import ConvexHull
+
+from wsim import mesh as wmesh
+from wsim.bem import cq
+from wsim.bem.assembly import LaplaceAssembler
+from wsim.bem.mass import mass_properties, traction_maps
+from wsim.bem.quadrature import Quadrature, quadrature_from
+from wsim.bem.surface import BemSurface, prepare_surface
+from wsim.cache import OperatorCache, content_key
+from wsim.errors import InvalidParameter
+from wsim.kernels import bem_assembly as ka
+from wsim.materials import ElasticMaterial
+from wsim.validate import finite_number
+
+#: bump when the stored arrays or their meaning change
+FORMAT_VERSION = 1
+PRECISIONS = {"float32": np.float32, "float64": np.float64}
+
+
+@dataclass(frozen=True)
+class BemOperators:
+    """Immutable operator set; N = number of collocation nodes (``surface.n_nodes``).
+
+    Attributes:
+        n_max: history length, n_max = floor(r_max / (c2 dt) + 2).
+        H, G: (n_max + 1, 3N, 3N) time-domain matrices (H_0 includes the free term).
+        D, Q: (n_max + 1, 3N, 3) fictitious-force matrices (float64).
+        H0_lu: LU factors and pivots of H_0 (scipy.linalg.lu_factor layout, float64).
+        H0_inv, H0_inv_Gp: H_0^-1 and H_0^-1 G' (3N, 3N).
+        Gp: G' = G_0 + D_0 A + Q_0 C (3N, 3N, float64).
+        A, C: (3, 3N) traction -> linear / angular acceleration maps of Eq. (10).
+        mass [kg], com (3,) [m], inertia (3, 3) about com [kg m^2], volume [m^3].
+    """
+
+    surface: BemSurface
+    material: ElasticMaterial
+    dt: float
+    method: str
+    precision: str
+    n_max: int
+    r_max: float
+    H: np.ndarray
+    G: np.ndarray
+    D: np.ndarray
+    Q: np.ndarray
+    H0_lu: tuple[np.ndarray, np.ndarray]
+    H0_inv: np.ndarray
+    H0_inv_Gp: np.ndarray
+    Gp: np.ndarray
+    A: np.ndarray
+    C: np.ndarray
+    mass: float
+    com: np.ndarray
+    inertia: np.ndarray
+    volume: float
+    key: str = ""
+    timings: dict[str, float] = field(default_factory=dict, compare=False)
+
+    @property
+    def n_nodes(self) -> int:
+        return self.surface.n_nodes
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the matrices."""
+        arrays = (self.H, self.G, self.D, self.Q, *self.H0_lu, self.H0_inv, self.H0_inv_Gp, self.Gp, self.A, self.C)
+        return int(sum(a.nbytes for a in arrays))
+
+    def solve_H0(self, b: np.ndarray) -> np.ndarray:
+        """H_0^-1 b with the float64 LU factors."""
+        return scipy.linalg.lu_solve(self.H0_lu, b)
+
+    # -- cache (de)serialization -------------------------------------------------------------
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        s = self.surface
+        return {
+            "nodes": s.nodes, "faces": s.faces, "vertex": s.vertex,
+            "H": self.H, "G": self.G, "D": self.D, "Q": self.Q,
+            "H0_lu": self.H0_lu[0], "H0_piv": self.H0_lu[1], "H0_inv": self.H0_inv, "H0_inv_Gp": self.H0_inv_Gp,
+            "Gp": self.Gp, "A": self.A, "C": self.C, "com": self.com, "inertia": self.inertia,
+            "scalars": np.array([self.mass, self.volume, self.r_max, self.dt, self.n_max], dtype=np.float64),
+        }
+
+
+def _from_arrays(a: dict[str, np.ndarray], surface: BemSurface, material: ElasticMaterial, method: str,
+                 precision: str, key: str) -> BemOperators:
+    mass, volume, r_max, dt, n_max = a["scalars"].tolist()
+    return BemOperators(
+        surface=surface, material=material, dt=dt, method=method, precision=precision, n_max=int(n_max), r_max=r_max,
+        H=a["H"], G=a["G"], D=a["D"], Q=a["Q"], H0_lu=(a["H0_lu"], a["H0_piv"]), H0_inv=a["H0_inv"],
+        H0_inv_Gp=a["H0_inv_Gp"], Gp=a["Gp"], A=a["A"], C=a["C"], mass=mass, com=a["com"], inertia=a["inertia"],
+        volume=volume, key=key,
+    )
+
+
+def surface_diameter(points: np.ndarray) -> float:
+    """r_max: the largest distance between two points of the surface (attained at hull vertices)."""
+    p = np.asarray(points, dtype=np.float64)
+    try:
+        p = p[ConvexHull(p).vertices]
+    except Exception:  # degenerate hull (cannot happen for a valid closed mesh): use every point
+        pass
+    best = 0.0
+    for start in range(0, len(p), 1024):
+        d = np.linalg.norm(p[start : start + 1024, None, :] - p[None, :, :], axis=-1)
+        best = max(best, float(d.max()))
+    return best
+
+
+def _rows_per_block(device: wp.Device, n: int, n_max: int, memory_limit: int | None) -> int:
+    """Rows whose complex H, G and n_max + 1 real accumulators of each fit the budget."""
+    per_row = 3 * 3 * n * 8 * (4 + 2 * (n_max + 1)) + 5 * 9 * 8
+    if memory_limit is None:
+        memory_limit = int(0.6 * device.free_memory) if device.is_cuda else 2 << 30
+    rows = max(1, int(memory_limit // per_row))
+    return min(n, rows)
+
+
+def build_operators(
+    mesh: Any,
+    material: ElasticMaterial,
+    dt: float,
+    *,
+    method: str = "bdf1",
+    eps: float = 1e-10,
+    precision: str = "float32",
+    double_nodes: float | None = None,
+    n_max: int | None = None,
+    device: Any = None,
+    cache: bool | OperatorCache = True,
+    memory_limit: int | None = None,
+    progress: bool = False,
+    **quadrature: Any,
+) -> BemOperators:
+    """Build (or load from the cache) the operator set of one BEM body.
+
+    Args:
+        mesh: a ``trimesh.Trimesh`` or (vertices, faces); closed and outward-oriented.
+        material: the elastic material (``incompressible=True`` for nu = 0.5).
+        dt: time step [s] (> 0).
+        method: CQ multistep method, "bdf1" (paper) or "bdf2".
+        eps: CQ accuracy parameter (R = eps^(1 / (2 n_max))).
+        precision: storage of H_k, G_k, H_0^-1, H_0^-1 G': "float32" or "float64".
+        double_nodes: crease angle [deg] for double nodes at sharp edges, or None.
+        n_max: override the history length (default floor(r_max / (c2 dt) + 2)).
+        device: Warp device for the assembly (default: CUDA if present).
+        cache: True (default folder), False, or an ``OperatorCache``.
+        memory_limit: device bytes the row blocks may use (default 60 % of free GPU memory, 2 GiB on CPU).
+        progress: show a progress bar over (row block, sample).
+        **quadrature: :class:`~wsim.bem.quadrature.Quadrature` knobs.
+    """
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    if not isinstance(material, ElasticMaterial):
+        raise InvalidParameter(f"material must be an ElasticMaterial, got {type(material).__name__}")
+    dt = finite_number(dt, "dt")
+    if dt <= 0.0:
+        raise InvalidParameter(f"dt = {dt} s must be > 0")
+    if precision not in PRECISIONS:
+        raise InvalidParameter(f"precision = {precision!r} must be one of {', '.join(PRECISIONS)}")
+    if method not in cq.GAMMA:
+        raise InvalidParameter(f"CQ method = {method!r} must be one of {', '.join(cq.GAMMA)}")
+    if not (0.0 < eps < 1.0):
+        raise InvalidParameter(f"eps = {eps!r} must be in (0, 1)")
+    quad = quadrature_from(quadrature)
+    vertices, faces = wmesh.surface_arrays(mesh, "bem mesh")
+    surface = prepare_surface(vertices, faces, double_nodes=double_nodes, name="bem mesh")
+    r_max = surface_diameter(surface.nodes)
+    if n_max is None:
+        n_max = cq.n_max_for(r_max, material.c2, dt)
+    elif not isinstance(n_max, (int, np.integer)) or n_max < 1:
+        raise InvalidParameter(f"n_max = {n_max!r} must be an integer >= 1")
+    timings["surface"] = time.perf_counter() - t_start
+
+    def build() -> dict[str, np.ndarray]:
+        t_build = time.perf_counter()
+        out = _build(surface, material, dt, method, eps, precision, int(n_max), r_max, quad, device,
+                     memory_limit, progress, timings).to_arrays()
+        timings["build"] = time.perf_counter() - t_build
+        return out
+
+    params = {"material": material.as_key(), "dt": dt, "method": method, "eps": eps, "precision": precision,
+              "double_nodes": double_nodes, "n_max": int(n_max), "quadrature": quad.as_key()}
+    arrays = {"nodes": surface.nodes, "faces": surface.faces, "vertex": surface.vertex}
+    key = content_key("bem_operators", arrays=arrays, params=params, version=FORMAT_VERSION)
+    if cache is False:
+        result = build()
+    else:
+        store = cache if isinstance(cache, OperatorCache) else OperatorCache()
+        t0 = time.perf_counter()
+        result = store.get_or_build("bem_operators", arrays=arrays, params=params, version=FORMAT_VERSION,
+                                    build=build, meta={"n_nodes": surface.n_nodes, "n_max": int(n_max)})
+        # a miss builds and then stores; a hit only loads (and verifies the checksums)
+        timings["cache_store" if "build" in timings else "cache_load"] = (
+            time.perf_counter() - t0 - timings.get("build", 0.0))
+    ops = _from_arrays(result, surface, material, method, precision, key)
+    timings["total"] = time.perf_counter() - t_start
+    ops.timings.update(timings)
+    return ops
+
+
+def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: str, eps: float, precision: str,
+           n_max: int, r_max: float, quad: Quadrature, device: Any, memory_limit: int | None, progress: bool,
+           timings: dict[str, float]) -> BemOperators:
+    from tqdm.auto import tqdm
+
+    t0 = time.perf_counter()
+    assembler = LaplaceAssembler(surface, material, quad, device)
+    dev = assembler.device
+    props = mass_properties(surface.nodes, surface.faces, material.rho)
+    A, C = traction_maps(surface, props)
+    s_l, R, L = cq.sample_points(dt, n_max, method, eps)
+    W = cq.half_weights(R, L, n_max)  # (half, n_max + 1)
+    n = surface.n_nodes
+    dtype = PRECISIONS[precision]
+    H = np.empty((n_max + 1, 3 * n, 3 * n), dtype=dtype)
+    G = np.empty_like(H)
+    H0 = np.empty((3 * n, 3 * n))
+    G0 = np.empty((3 * n, 3 * n))
+    D = np.zeros((n_max + 1, 3 * n, 3))
+    Q = np.zeros_like(D)
+    rows = _rows_per_block(dev, n, n_max, memory_limit)
+    blocks = [(r0, min(rows, n - r0)) for r0 in range(0, n, rows)]
+    timings["setup"] = time.perf_counter() - t0
+    t_assembly = t_transfer = 0.0
+    bar = tqdm(total=len(blocks) * len(s_l), desc="BEM operators", unit="sample", disable=not progress)
+    with wp.ScopedDevice(dev):
+        block = assembler.block(rows)
+        acc_H = wp.zeros((n_max + 1, 3 * rows, 3 * n), dtype=wp.float64)
+        acc_G = wp.zeros_like(acc_H)
+        for r0, nr in blocks:
+            t1 = time.perf_counter()
+            acc_H.zero_()
+            acc_G.zero_()
+            for l, s in enumerate(s_l):
+                assembler.assemble(complex(s), r0, nr, block)
+                w_re = wp.array(W[l].real.copy(), dtype=wp.float64)
+                w_im = wp.array(W[l].imag.copy(), dtype=wp.float64)
+                wp.launch(ka.cq_accumulate, dim=(3 * nr, 3 * n), inputs=[block.H_re, block.H_im, w_re, w_im, acc_H])
+                wp.launch(ka.cq_accumulate, dim=(3 * nr, 3 * n), inputs=[block.G_re, block.G_im, w_re, w_im, acc_G])
+                small = assembler.small_to_host(block, r0, nr, props.com)
+                sl = slice(3 * r0, 3 * (r0 + nr))
+                D[:, sl] += np.real(W[l][:, None, None] * small["D"][None])
+                Q[:, sl] += np.real(W[l][:, None, None] * small["Q"][None])
+                bar.update(1)
+            wp.synchronize_device(dev)
+            t2 = time.perf_counter()
+            hk = acc_H.numpy()[:, : 3 * nr]
+            gk = acc_G.numpy()[:, : 3 * nr]
+            sl = slice(3 * r0, 3 * (r0 + nr))
+            H0[sl], G0[sl] = hk[0], gk[0]
+            H[:, sl] = hk
+            G[:, sl] = gk
+            t_transfer += time.perf_counter() - t2
+            t_assembly += t2 - t1
+    bar.close()
+    timings["assembly"] = t_assembly
+    timings["transfer"] = t_transfer
+    t3 = time.perf_counter()
+    lu = scipy.linalg.lu_factor(H0, check_finite=True)
+    H0_inv = scipy.linalg.lu_solve(lu, np.eye(3 * n))
+    Gp = G0 + D[0] @ A + Q[0] @ C
+    H0_inv_Gp = scipy.linalg.lu_solve(lu, Gp)
+    timings["factorization"] = time.perf_counter() - t3
+    return BemOperators(
+        surface=surface, material=material, dt=dt, method=method, precision=precision, n_max=n_max, r_max=r_max,
+        H=H, G=G, D=D, Q=Q, H0_lu=lu, H0_inv=H0_inv.astype(dtype), H0_inv_Gp=H0_inv_Gp.astype(dtype), Gp=Gp,
+        A=A, C=C, mass=props.mass, com=props.com, inertia=props.inertia, volume=props.volume,
+    )
