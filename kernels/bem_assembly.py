@@ -22,14 +22,16 @@ Races: H and G blocks are written for the three vertices of t, so triangles of o
 share a node (the caller launches per triangle colour on CUDA; a serial CPU launch needs no
 colours). D, L and S sum over all triangles of a row: each thread handles a chunk of triangles and
 adds its partial sums atomically (float64 atomics; on CUDA their order, and so the last bit, can
-vary between runs).
+vary between runs). The near-field level is a threshold on distance / edge: a pair exactly at a
+threshold (common on regular meshes) may pick different rules on CPU and GPU, whose arithmetic
+differs by FMA contraction; the results then differ by the quadrature error, not round-off.
 """
 
 from __future__ import annotations
 
 import warp as wp
 
-from wsim.kernels.bem_kernels import cross_matrix, d_coeffs, l_coeffs, p_coeffs, u_coeffs
+from wsim.kernels.bem_kernels import cross_matrix, d_from, kernel_scalars, l_from, p_from, u_from
 
 _PI4 = wp.constant(wp.float64(12.566370614359172))  # 4 pi
 
@@ -205,10 +207,11 @@ def assemble_rows(
             dd = wp.outer(d, d)
             dnT = wp.outer(d, n)
             sym = eye * dn + wp.outer(n, d)  # the two terms sharing C1
-            A, B = u_coeffs(r, s, a1, a2, rho)
+            E1, E2, p2, Phi = kernel_scalars(r, s, a1, a2)  # the exponentials once for all four kernels
+            A, B = u_from(r, E1, E2, Phi, a1, a2, rho)
             Ur = (eye * A[0] + dd * B[0]) * w
             Ui = (eye * A[1] + dd * B[1]) * w
-            C1, C2, C3 = p_coeffs(r, s, a1, a2)
+            C1, C2, C3 = p_from(r, s, E1, E2, Phi, a1, a2)
             Pr = (sym * C1[0] + dd * (dn * C2[0]) + dnT * C3[0]) * w
             Pi = (sym * C1[1] + dd * (dn * C2[1]) + dnT * C3[1]) * w
             S1, S2, S3 = static_p_coeffs(r, kappa)
@@ -226,10 +229,10 @@ def assemble_rows(
             G2r += Ur * b[2]
             G2i += Ui * b[2]
             Sa -= Ps * (one - sing * b[0])
-            Dn, Dd = d_coeffs(r, s, a1, a2)
+            Dn, Dd = d_from(p2, Phi, a2)
             Dr += (dnT * Dn[0] + eye * (dn * Dd[0])) * w
             Di += (dnT * Dn[1] + eye * (dn * Dd[1])) * w
-            L1, L2 = l_coeffs(r, s, a1, a2)
+            L1, L2 = l_from(r, s, E2, Phi, a2)
             dxn = wp.outer(d, wp.cross(d, n))
             nx = cross_matrix(n)
             Lr += (dxn * L1[0] + nx * L2[0]) * w
@@ -276,3 +279,10 @@ def cq_accumulate(
     mi = M_im[r, c]
     for k in range(w_re.shape[0]):
         out[k, r, c] += w_re[k] * mr - w_im[k] * mi
+
+
+@wp.kernel
+def to_float32(src: wp.array3d(dtype=wp.float64), dst: wp.array3d(dtype=wp.float32)):
+    """Storage cast on the device, so only half the bytes cross to the host."""
+    k, r, c = wp.tid()
+    dst[k, r, c] = wp.float32(src[k, r, c])

@@ -40,18 +40,24 @@ def creal(x: wp.float64) -> wp.vec2d:
 
 
 @wp.func
+def phi_series(z: wp.vec2d) -> wp.vec2d:
+    """sum_{n>=2} (-1)^n (1 - n) z^(n-2) / n!: phi to round-off for |z| < 0.5 (16 terms)."""
+    term = creal(wp.float64(0.5))
+    total = -term
+    sign = wp.float64(-1.0)
+    for n in range(3, 18):
+        nf = wp.float64(n)
+        term = cmul(term, z) / nf
+        total = total + term * (sign * (wp.float64(1.0) - nf))
+        sign = -sign
+    return total
+
+
+@wp.func
 def phi(z: wp.vec2d) -> wp.vec2d:
-    """((1 + z) e^-z - 1) / z^2; series sum_{n>=2} (-1)^n (1 - n) z^(n-2) / n! for |z| < 0.5."""
+    """((1 + z) e^-z - 1) / z^2; the series for |z| < 0.5, where the closed form cancels."""
     if wp.sqrt(z[0] * z[0] + z[1] * z[1]) < _PHI_SERIES_LIMIT:
-        term = creal(wp.float64(0.5))
-        total = -term
-        sign = wp.float64(-1.0)
-        for n in range(3, 18):
-            nf = wp.float64(n)
-            term = cmul(term, z) / nf
-            total = total + term * (sign * (wp.float64(1.0) - nf))
-            sign = -sign
-        return total
+        return phi_series(z)
     one = creal(wp.float64(1.0))
     return cdiv(cmul(one + z, cexp(-z)) - one, cmul(z, z))
 
@@ -59,26 +65,29 @@ def phi(z: wp.vec2d) -> wp.vec2d:
 @wp.func
 def kernel_scalars(r: wp.float64, s: wp.vec2d, a1: wp.float64, a2: wp.float64):
     """E1 = e^(-s r a1), E2 = e^(-s r a2), phi(z2) and Phi = a1^2 phi(z1) - a2^2 phi(z2)
-    = [(1 + z1) E1 - (1 + z2) E2] / (s r)^2 (series form for small |z2|, direct form beyond)."""
+    = [(1 + z1) E1 - (1 + z2) E2] / (s r)^2 (series form for small |z2|, direct form beyond,
+    reusing E1 and E2: two complex exponentials per point in all)."""
     z1 = s * (r * a1)
     z2 = s * (r * a2)
-    p2 = phi(z2)
     E1 = cexp(-z1)
     E2 = cexp(-z2)
     one = creal(wp.float64(1.0))
+    p2 = wp.vec2d()
     Phi = wp.vec2d()
     if wp.sqrt(z2[0] * z2[0] + z2[1] * z2[1]) < _PHI_SERIES_LIMIT:
-        Phi = phi(z1) * (a1 * a1) - p2 * (a2 * a2)  # |z1| <= |z2| small: the series cancels nothing
+        p2 = phi_series(z2)
+        Phi = phi_series(z1) * (a1 * a1) - p2 * (a2 * a2)  # |z1| <= |z2| small: the series cancels nothing
     else:
+        w2 = cmul(one + z2, E2)
+        p2 = cdiv(w2 - one, cmul(z2, z2))
         sr = s * r
-        Phi = cdiv(cmul(one + z1, E1) - cmul(one + z2, E2), cmul(sr, sr))  # the -1's cancel analytically
+        Phi = cdiv(cmul(one + z1, E1) - w2, cmul(sr, sr))  # the -1's cancel analytically
     return E1, E2, p2, Phi
 
 
 @wp.func
-def u_coeffs(r: wp.float64, s: wp.vec2d, a1: wp.float64, a2: wp.float64, rho: wp.float64):
-    """Eq. (16): u = A delta + B d d^T."""
-    E1, E2, p2, Phi = kernel_scalars(r, s, a1, a2)
+def u_from(r: wp.float64, E1: wp.vec2d, E2: wp.vec2d, Phi: wp.vec2d, a1: wp.float64, a2: wp.float64, rho: wp.float64):
+    """Eq. (16) from the shared scalars: u = A delta + B d d^T."""
     f = wp.float64(1.0) / (_PI4 * rho * r)
     A = (E2 * (a2 * a2) - Phi) * f
     B = (Phi * wp.float64(3.0) + E1 * (a1 * a1) - E2 * (a2 * a2)) * f
@@ -86,10 +95,9 @@ def u_coeffs(r: wp.float64, s: wp.vec2d, a1: wp.float64, a2: wp.float64, rho: wp
 
 
 @wp.func
-def p_coeffs(r: wp.float64, s: wp.vec2d, a1: wp.float64, a2: wp.float64):
-    """Eq. (17): p = C1 (d.n) delta + C2 (d.n) d d^T + C3 d n^T + C1 n d^T (module docstring of
-    wsim.bem.fundamental; load direction i = row, traction component j = column)."""
-    E1, E2, p2, Phi = kernel_scalars(r, s, a1, a2)
+def p_from(r: wp.float64, s: wp.vec2d, E1: wp.vec2d, E2: wp.vec2d, Phi: wp.vec2d, a1: wp.float64, a2: wp.float64):
+    """Eq. (17) from the shared scalars: p = C1 (d.n) delta + C2 (d.n) d d^T + C3 d n^T + C1 n d^T
+    (module docstring of wsim.bem.fundamental; load direction i = row, traction component j = column)."""
     kappa = (a1 * a1) / (a2 * a2)
     F = Phi * (wp.float64(6.0) / (a2 * a2))
     sr = s * r
@@ -103,17 +111,43 @@ def p_coeffs(r: wp.float64, s: wp.vec2d, a1: wp.float64, a2: wp.float64):
 
 
 @wp.func
-def d_coeffs(r: wp.float64, s: wp.vec2d, a1: wp.float64, a2: wp.float64):
-    """Eq. (19): d = Dn d n^T + Dd (d.n) delta (bounded as r -> 0)."""
-    E1, E2, p2, Phi = kernel_scalars(r, s, a1, a2)
+def d_from(p2: wp.vec2d, Phi: wp.vec2d, a2: wp.float64):
+    """Eq. (19) from the shared scalars: d = Dn d n^T + Dd (d.n) delta (bounded as r -> 0)."""
     return Phi / _PI4, p2 * (a2 * a2) / _PI4
 
 
 @wp.func
-def l_coeffs(r: wp.float64, s: wp.vec2d, a1: wp.float64, a2: wp.float64):
-    """Eq. (21): l = L1 d (d x n)^T + L2 [n]x, with L1 = r Phi / 4 pi and L2 = -a2 E2 / (4 pi s)."""
-    E1, E2, p2, Phi = kernel_scalars(r, s, a1, a2)
+def l_from(r: wp.float64, s: wp.vec2d, E2: wp.vec2d, Phi: wp.vec2d, a2: wp.float64):
+    """Eq. (21) from the shared scalars: l = L1 d (d x n)^T + L2 [n]x, L1 = r Phi / 4 pi, L2 = -a2 E2 / (4 pi s)."""
     return Phi * (r / _PI4), -cdiv(E2 * a2, s) / _PI4
+
+
+@wp.func
+def u_coeffs(r: wp.float64, s: wp.vec2d, a1: wp.float64, a2: wp.float64, rho: wp.float64):
+    """Eq. (16): u = A delta + B d d^T."""
+    E1, E2, p2, Phi = kernel_scalars(r, s, a1, a2)
+    return u_from(r, E1, E2, Phi, a1, a2, rho)
+
+
+@wp.func
+def p_coeffs(r: wp.float64, s: wp.vec2d, a1: wp.float64, a2: wp.float64):
+    """Eq. (17): see ``p_from``."""
+    E1, E2, p2, Phi = kernel_scalars(r, s, a1, a2)
+    return p_from(r, s, E1, E2, Phi, a1, a2)
+
+
+@wp.func
+def d_coeffs(r: wp.float64, s: wp.vec2d, a1: wp.float64, a2: wp.float64):
+    """Eq. (19): see ``d_from``."""
+    E1, E2, p2, Phi = kernel_scalars(r, s, a1, a2)
+    return d_from(p2, Phi, a2)
+
+
+@wp.func
+def l_coeffs(r: wp.float64, s: wp.vec2d, a1: wp.float64, a2: wp.float64):
+    """Eq. (21): see ``l_from``."""
+    E1, E2, p2, Phi = kernel_scalars(r, s, a1, a2)
+    return l_from(r, s, E2, Phi, a2)
 
 
 @wp.func

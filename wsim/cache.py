@@ -31,6 +31,7 @@ import sys
 import tempfile
 import warnings
 from collections.abc import Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from datetime import datetime, timezone
 from typing import Any
 
@@ -65,18 +66,28 @@ def default_cache_dir() -> pathlib.Path:
     return base / "wsim"
 
 
-def _feed(h: Any, *fields: bytes | str) -> None:
+def _feed(h: Any, *fields: bytes | str | memoryview) -> None:
     # Length-prefix every field so that ("ab", "c") and ("a", "bc") cannot hash alike.
     for field in fields:
         data = field.encode() if isinstance(field, str) else field
-        h.update(len(data).to_bytes(8, "little"))
+        h.update(memoryview(data).nbytes.to_bytes(8, "little"))
         h.update(data)
 
 
 def _array_digest(h: Any, a: np.ndarray) -> None:
     if a.dtype.hasobject:
         raise TypeError(f"arrays of dtype {a.dtype} hold pointers, not data, and cannot be hashed")
-    _feed(h, a.dtype.str, json.dumps(list(a.shape)), np.ascontiguousarray(a).tobytes())
+    # a byte view, not tobytes(): operator sets are gigabytes, and a copy would double the memory
+    data = memoryview(np.ascontiguousarray(a).reshape(-1)).cast("B")
+    _feed(h, a.dtype.str, json.dumps(list(a.shape)), data)
+
+
+def _parallel_sha256(arrays: Mapping[str, np.ndarray]) -> dict[str, str]:
+    """Per-dataset checksums in threads (hashlib releases the GIL on large buffers)."""
+    if len(arrays) < 2:
+        return {name: _dataset_sha256(a) for name, a in arrays.items()}
+    with ThreadPoolExecutor(max_workers=min(len(arrays), os.cpu_count() or 1)) as pool:
+        return dict(zip(arrays, pool.map(_dataset_sha256, arrays.values())))
 
 
 def _dataset_sha256(a: np.ndarray) -> str:
@@ -179,15 +190,18 @@ class OperatorCache:
                 elif a.get("key") != key:
                     reason = "stale (stored key differs)"
                 else:
+                    stored: dict[str, Any] = {}
                     for name, ds in f.items():
                         if not isinstance(ds, h5py.Dataset):
                             reason = f"unexpected group {name!r}"
                             break
-                        arr = np.asarray(ds[()])  # np.asarray: 0-d datasets read as scalars
-                        if ds.attrs.get("sha256") != _dataset_sha256(arr):
-                            reason = f"dataset {name!r} failed its sha256 check (corrupt)"
-                            break
-                        out[name] = arr
+                        out[name] = np.asarray(ds[()])  # np.asarray: 0-d datasets read as scalars
+                        stored[name] = ds.attrs.get("sha256")
+                    if reason is None:
+                        digests = _parallel_sha256(out)
+                        bad = [name for name in out if stored[name] != digests[name]]
+                        if bad:
+                            reason = f"dataset {bad[0]!r} failed its sha256 check (corrupt)"
         except Exception as exc:  # any unreadable file is just a cache miss
             reason = f"unreadable ({type(exc).__name__}: {exc})"
         if reason is not None:
@@ -217,10 +231,11 @@ class OperatorCache:
                 f.attrs["wsim_version"] = _wsim_version()
                 f.attrs["created"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
                 f.attrs["meta"] = json.dumps(dict(meta or {}), sort_keys=True, default=str)
+                digests = _parallel_sha256(data)
                 for name, a in data.items():
                     # Contiguous and uncompressed: dense operators barely compress, and reads
                     # stay a single memcpy-sized I/O.
-                    f.create_dataset(name, data=a).attrs["sha256"] = _dataset_sha256(a)
+                    f.create_dataset(name, data=a).attrs["sha256"] = digests[name]
             with open(tmp, "r+b") as fh:  # data must be on disk before the rename publishes it
                 os.fsync(fh.fileno())
             os.chmod(tmp, 0o644)  # mkstemp makes 0600; a shared cache must stay readable

@@ -136,7 +136,7 @@ def surface_diameter(points: np.ndarray) -> float:
 
 def _rows_per_block(device: wp.Device, n: int, n_max: int, memory_limit: int | None) -> int:
     """Rows whose complex H, G and n_max + 1 real accumulators of each fit the budget."""
-    per_row = 3 * 3 * n * 8 * (4 + 2 * (n_max + 1)) + 5 * 9 * 8
+    per_row = 3 * 3 * n * (8 * (4 + 2 * (n_max + 1)) + 4 * (n_max + 1)) + 5 * 9 * 8  # + the float32 cast
     if memory_limit is None:
         memory_limit = int(0.6 * device.free_memory) if device.is_cuda else 2 << 30
     rows = max(1, int(memory_limit // per_row))
@@ -240,21 +240,26 @@ def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: st
     W = cq.half_weights(R, L, n_max)  # (half, n_max + 1)
     n = surface.n_nodes
     dtype = PRECISIONS[precision]
-    H = np.empty((n_max + 1, 3 * n, 3 * n), dtype=dtype)
-    G = np.empty_like(H)
-    H0 = np.empty((3 * n, 3 * n))
-    G0 = np.empty((3 * n, 3 * n))
+    wp_dtype = wp.float32 if dtype == np.float32 else wp.float64
     D = np.zeros((n_max + 1, 3 * n, 3))
     Q = np.zeros_like(D)
     rows = _rows_per_block(dev, n, n_max, memory_limit)
     blocks = [(r0, min(rows, n - r0)) for r0 in range(0, n, rows)]
+    cols = 3 * n
+    # host results in page-locked memory on CUDA: device -> host copies at full PCIe/NVLink speed
+    pinned = dev.is_cuda
+    H_host = wp.empty((n_max + 1, cols, cols), dtype=wp_dtype, device="cpu", pinned=pinned)
+    G_host = wp.empty((n_max + 1, cols, cols), dtype=wp_dtype, device="cpu", pinned=pinned)
+    H0_host = wp.empty((cols, cols), dtype=wp.float64, device="cpu", pinned=pinned)
+    G0_host = wp.empty((cols, cols), dtype=wp.float64, device="cpu", pinned=pinned)
     timings["setup"] = time.perf_counter() - t0
     t_assembly = t_transfer = 0.0
     bar = tqdm(total=len(blocks) * len(s_l), desc="BEM operators", unit="sample", disable=not progress)
     with wp.ScopedDevice(dev):
         block = assembler.block(rows)
-        acc_H = wp.zeros((n_max + 1, 3 * rows, 3 * n), dtype=wp.float64)
+        acc_H = wp.zeros((n_max + 1, 3 * rows, cols), dtype=wp.float64)
         acc_G = wp.zeros_like(acc_H)
+        cast = wp.empty((n_max + 1, 3 * rows, cols), dtype=wp.float32) if wp_dtype == wp.float32 else None
         for r0, nr in blocks:
             t1 = time.perf_counter()
             acc_H.zero_()
@@ -263,8 +268,8 @@ def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: st
                 assembler.assemble(complex(s), r0, nr, block)
                 w_re = wp.array(W[l].real.copy(), dtype=wp.float64)
                 w_im = wp.array(W[l].imag.copy(), dtype=wp.float64)
-                wp.launch(ka.cq_accumulate, dim=(3 * nr, 3 * n), inputs=[block.H_re, block.H_im, w_re, w_im, acc_H])
-                wp.launch(ka.cq_accumulate, dim=(3 * nr, 3 * n), inputs=[block.G_re, block.G_im, w_re, w_im, acc_G])
+                wp.launch(ka.cq_accumulate, dim=(3 * nr, cols), inputs=[block.H_re, block.H_im, w_re, w_im, acc_H])
+                wp.launch(ka.cq_accumulate, dim=(3 * nr, cols), inputs=[block.G_re, block.G_im, w_re, w_im, acc_G])
                 small = assembler.small_to_host(block, r0, nr, props.com)
                 sl = slice(3 * r0, 3 * (r0 + nr))
                 D[:, sl] += np.real(W[l][:, None, None] * small["D"][None])
@@ -272,14 +277,19 @@ def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: st
                 bar.update(1)
             wp.synchronize_device(dev)
             t2 = time.perf_counter()
-            hk = acc_H.numpy()[:, : 3 * nr]
-            gk = acc_G.numpy()[:, : 3 * nr]
-            sl = slice(3 * r0, 3 * (r0 + nr))
-            H0[sl], G0[sl] = hk[0], gk[0]
-            H[:, sl] = hk
-            G[:, sl] = gk
+            count = 3 * nr * cols
+            for acc, host, host0 in ((acc_H, H_host, H0_host), (acc_G, G_host, G0_host)):
+                wp.copy(host0, acc, dest_offset=3 * r0 * cols, src_offset=0, count=count)
+                src = acc
+                if cast is not None:
+                    wp.launch(ka.to_float32, dim=(n_max + 1, 3 * nr, cols), inputs=[acc, cast])
+                    src = cast
+                for k in range(n_max + 1):
+                    wp.copy(host, src, dest_offset=k * cols * cols + 3 * r0 * cols, src_offset=k * 3 * rows * cols, count=count)
+            wp.synchronize_device(dev)
             t_transfer += time.perf_counter() - t2
             t_assembly += t2 - t1
+    H, G, H0, G0 = H_host.numpy(), G_host.numpy(), H0_host.numpy(), G0_host.numpy()
     bar.close()
     timings["assembly"] = t_assembly
     timings["transfer"] = t_transfer
