@@ -57,7 +57,6 @@ def make_mesh(spec, path):
 
 
 def run_case(name: str, device: str, precision: str, mesh_path: str | None, quadrature: dict) -> dict:
-    import numpy as np
     import warp as wp
 
     import wsim

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from wsim.bem.fundamental import inverse_speeds
-from wsim.bem.mass import cross_matrix, mass_properties
+from wsim.bem.fundamental import cross_matrix, inverse_speeds
+from wsim.bem.mass import mass_properties
 from wsim.bem.quadrature import Quadrature, quadrature_from
 from wsim.bem.surface import BemSurface, free_term, prepare_surface
 from wsim.device import resolve_device

@@ -133,7 +133,8 @@ def d_hat(x: np.ndarray, y: np.ndarray, n: np.ndarray, s: complex, material) -> 
     return out / (4.0 * np.pi)
 
 
-def _cross_matrix(v: np.ndarray) -> np.ndarray:
+def cross_matrix(v: np.ndarray) -> np.ndarray:
+    """[v]x with [v]x w = v x w, for (..., 3) arrays."""
     z = np.zeros(v.shape[:-1])
     return np.stack(
         [np.stack([z, -v[..., 2], v[..., 1]], -1), np.stack([v[..., 2], z, -v[..., 0]], -1), np.stack([-v[..., 1], v[..., 0], z], -1)],
@@ -148,10 +149,10 @@ def q_hat(x: np.ndarray, y: np.ndarray, n: np.ndarray, s: complex, material, x_b
     n = np.asarray(n, dtype=np.float64)
     E1, E2, _, Phi = _scalars(rr, s, a1, a2)
     dxn = np.cross(d, n)
-    l = (rr * Phi)[..., None, None] * d[..., :, None] * dxn[..., None, :] - (a2 * E2 / s)[..., None, None] * _cross_matrix(n)
+    l = (rr * Phi)[..., None, None] * d[..., :, None] * dxn[..., None, :] - (a2 * E2 / s)[..., None, None] * cross_matrix(n)
     l = l / (4.0 * np.pi)
     lever = np.asarray(x, dtype=np.float64) - np.asarray(x_bar, dtype=np.float64)
-    return l + d_hat(x, y, n, s, material) @ np.swapaxes(_cross_matrix(np.broadcast_to(lever, d.shape)), -1, -2)
+    return l + d_hat(x, y, n, s, material) @ np.swapaxes(cross_matrix(np.broadcast_to(lever, d.shape)), -1, -2)
 
 
 def kelvin_u(x: np.ndarray, y: np.ndarray, material) -> np.ndarray:

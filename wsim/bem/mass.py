@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from wsim.bem.fundamental import cross_matrix
 from wsim.bem.surface import BemSurface
 
 
@@ -43,14 +44,6 @@ def mass_properties(vertices: np.ndarray, faces: np.ndarray, rho: float) -> Mass
     cov = second - volume * np.outer(centroid, centroid)  # int (y - com)(y - com)^T dV
     inertia = rho * (np.trace(cov) * np.eye(3) - cov)
     return MassProperties(mass=rho * volume, com=centroid + o, inertia=inertia, volume=volume)
-
-
-def cross_matrix(v: np.ndarray) -> np.ndarray:
-    """[v]x with [v]x w = v x w; works on (..., 3)."""
-    v = np.asarray(v, dtype=np.float64)
-    z = np.zeros(v.shape[:-1])
-    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1), np.stack([v[..., 2], z, -v[..., 0]], -1),
-                     np.stack([-v[..., 1], v[..., 0], z], -1)], axis=-2)
 
 
 def traction_maps(surface: BemSurface, props: MassProperties) -> tuple[np.ndarray, np.ndarray]:
