@@ -47,23 +47,17 @@ class BemSurface:
     def n_nodes(self) -> int:
         return int(self.nodes.shape[0])
 
-    @property
-    def has_double_nodes(self) -> bool:
-        return self.n_nodes > int(self.vertex.max()) + 1
-
     def node_areas(self) -> np.ndarray:
         """int_Gamma N_v dA per node [m^2]."""
         return wmesh.vertex_areas(self.nodes, self.faces)
 
     def first_node(self) -> np.ndarray:
         """(N,) int32: the first node at the same vertex as each node."""
-        first = np.full(int(self.vertex.max()) + 1, -1, dtype=np.int64)
-        for node in range(self.n_nodes - 1, -1, -1):
-            first[self.vertex[node]] = node
+        _, first = np.unique(self.vertex, return_index=True)  # every vertex has a node
         return first[self.vertex].astype(np.int32)
 
 
-def _sectors(faces: np.ndarray, normals: np.ndarray, n_vertices: int, cos_limit: float) -> np.ndarray:
+def _sectors(faces: np.ndarray, normals: np.ndarray, cos_limit: float) -> np.ndarray:
     """(M, 3) sector label per face corner: corners of one vertex joined through smooth edges share it."""
     m = faces.shape[0]
     parent = np.arange(3 * m)  # union-find over face corners 3 f + k
@@ -114,7 +108,7 @@ def prepare_surface(vertices, faces, *, double_nodes: float | None = None, name:
         angle = float(double_nodes)
         if not (0.0 < angle < 180.0):
             raise InvalidParameter(f"double_nodes = {double_nodes!r} must be a crease angle in (0, 180) degrees or None")
-        label = _sectors(f, normals, v.shape[0], float(np.cos(np.radians(angle))))
+        label = _sectors(f, normals, float(np.cos(np.radians(angle))))
         # one node per (vertex, sector), copies right after the first node of their vertex
         keys = np.stack([f.reshape(-1), label.reshape(-1)], axis=1)
         uniq, inverse = np.unique(keys, axis=0, return_inverse=True)  # sorted by vertex, then sector
@@ -126,8 +120,9 @@ def prepare_surface(vertices, faces, *, double_nodes: float | None = None, name:
                       areas=0.5 * norm, longest_edge=edges.max(axis=1))
 
 
-def _ordered_ring(node_faces: np.ndarray, centre: int) -> list[tuple[int, int]]:
-    """Directed ring edges (a, b) of the faces (centre, a, b) around a vertex (face order irrelevant)."""
+def _ring_edges(node_faces: np.ndarray, centre: int) -> list[tuple[int, int]]:
+    """Directed ring edges (a, b) of the faces (centre, a, b) around a vertex; the signed fan of
+    ``solid_angle_moments`` needs their orientation, not their order."""
     ring = []
     for tri in node_faces:
         k = int(np.flatnonzero(tri == centre)[0])
@@ -183,7 +178,7 @@ def free_term(surface: BemSurface, node_list: np.ndarray, kappa: float) -> np.nd
         faces = surface.faces[mask]
         # rename the copies of this vertex to one id so the ring is one loop
         faces = np.where(np.isin(faces, at_vertex), -1, faces)
-        ring = _ordered_ring(faces, -1)
+        ring = _ring_edges(faces, -1)
         x = surface.nodes[node]
         pts = [(surface.nodes[a], surface.nodes[b]) for a, b in ring]
         inward = -(surface.normals[mask] * surface.areas[mask, None]).sum(axis=0)
