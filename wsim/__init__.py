@@ -9,6 +9,7 @@ The scene API::
     world.run(frames=90, out="out.usda")
 """
 
+from wsim.bem.body import BemBody
 from wsim.body import Body
 from wsim.colliders import Collider, GroundPlane, MeshCollider
 from wsim.errors import (
@@ -37,6 +38,7 @@ __all__ = [
     "RunSummary",
     "Body",
     "PbdBody",
+    "BemBody",
     "PbdReconstruction",
     "PbdRecording",
     "record",

@@ -1,0 +1,78 @@
+"""Warp kernels of the BEM time step (paper Eqs. 9 and 12): the two dense matrix-vector passes.
+
+Both are memory-bandwidth bound: every step reads 2 n_max + 2 dense 3N x 3N matrices once.
+One block of ``MATVEC_BLOCK`` threads computes one output row: each thread strides over the
+columns (consecutive threads read consecutive addresses, so every load is coalesced) and
+keeps one running sum; the block then reduces its partial sums (``tile_sum``). The kernels are
+generic over the storage precision: float32 (default, half the bytes) or float64, with the
+partial sums in the storage type.
+
+Launch with ``wp.launch_tiled(..., dim=rows, block_dim=MATVEC_BLOCK)``. The stride is read with
+``wp.block_dim()``: on the CPU Warp runs a block as one thread, which then sums the whole row.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import warp as wp
+
+MATVEC_BLOCK = wp.constant(256)
+
+
+@wp.kernel
+def history_matvec(
+    H: wp.array3d(dtype=Any),
+    G: wp.array3d(dtype=Any),
+    U: wp.array2d(dtype=Any),
+    P: wp.array2d(dtype=Any),
+    DQ: wp.array3d(dtype=Any),
+    B: wp.array2d(dtype=Any),
+    step: int,
+    h: wp.array(dtype=Any),
+):
+    """History term of Eq. (9) at step n = ``step``:
+
+        h_n = sum_{k=1}^{n_max} ( -H_k u_{n-k} + G_k p_{n-k} + [D_k Q_k] [a - g', alpha]_{n-k} ).
+
+    H[k-1], G[k-1] hold H_k, G_k (k = 1..n_max); DQ[k-1] is the (3N, 6) block [D_k Q_k]. The ring
+    buffers U, P (n_max, 3N) and B (n_max, 6) hold step m in row m mod n_max.
+    """
+    row, lane = wp.tid()
+    stride = wp.block_dim()
+    n_max = H.shape[0]
+    cols = H.shape[2]
+    acc = h.dtype(0.0)
+    for k in range(1, n_max + 1):
+        slot = (step - k) % n_max
+        c = lane
+        while c < cols:
+            acc += G[k - 1, row, c] * P[slot, c] - H[k - 1, row, c] * U[slot, c]
+            c += stride
+        j = lane
+        while j < 6:
+            acc += DQ[k - 1, row, j] * B[slot, j]
+            j += stride
+    total = wp.tile_sum(wp.tile(acc))
+    wp.tile_store(h, total, offset=row)
+
+
+@wp.kernel
+def solve_matvec(
+    H0_inv_Gp: wp.array2d(dtype=Any),
+    H0_inv: wp.array2d(dtype=Any),
+    p: wp.array(dtype=Any),
+    h: wp.array(dtype=Any),
+    u: wp.array(dtype=Any),
+):
+    """Displacement of Eq. (12): u_n = H_0^-1 G' p_n + H_0^-1 h_n."""
+    row, lane = wp.tid()
+    stride = wp.block_dim()
+    cols = H0_inv.shape[1]
+    acc = u.dtype(0.0)
+    c = lane
+    while c < cols:
+        acc += H0_inv_Gp[row, c] * p[c] + H0_inv[row, c] * h[c]
+        c += stride
+    total = wp.tile_sum(wp.tile(acc))
+    wp.tile_store(u, total, offset=row)

@@ -1,0 +1,193 @@
+"""Benchmark the BEM time step (paper Table 1, column UNCNST): one JSON line per case.
+
+    python tools/bench_bem_step.py --cases bumpy_cube_small                 # CPU-sized
+    python tools/bench_bem_step.py --cases bumpy_cube,mesh --mesh bunny.obj  # on a GPU machine
+
+Per case: operators built (not cached, not timed here: see bench_bem_precompute.py), then a body
+spinning and pushed by a traction pulse is stepped
+
+* with ``profile=True`` (device synchronized after each stage): seconds per step by stage
+  (loads, history, solve = the paper's UNCNST; correction + frame = ERRCR);
+* without profiling: seconds per whole step;
+
+and the history matvec alone is timed and compared, in the same run, with the same product through
+torch (``torch.mv`` over the 2 n_max matrices, on the GPU, when torch is importable) and numpy BLAS
+(on the host copies). GB/s counts the matrix bytes read once per pass.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_bem_precompute import CASES, make_mesh  # noqa: E402
+
+PAPER_UNCNST = {"bumpy_cube": 0.268, "mesh": 0.0912}  # Table 1, s per step on one CPU thread
+
+
+def _time(fn, repeats: int, sync) -> float:
+    fn()
+    sync()
+    best = float("inf")
+    for _ in range(3):
+        t0 = time.perf_counter()
+        for _ in range(repeats):
+            fn()
+        sync()
+        best = min(best, (time.perf_counter() - t0) / repeats)
+    return best
+
+
+def run_case(name: str, device: str | None, precision: str, mesh_path: str | None, steps: int) -> dict:
+    import warp as wp
+
+    import wsim
+    from wsim.bem import stepper
+    from wsim.bem.operators import build_operators
+    from wsim.device import quiet_warp, resolve_device
+
+    quiet_warp()
+    spec, (rho, mu, nu, incompressible), dt = CASES[name]
+    mesh = make_mesh(spec, mesh_path)
+    material = wsim.ElasticMaterial(mu=mu, nu=nu, rho=rho, incompressible=incompressible)
+    dev = resolve_device(device)
+    t0 = time.perf_counter()
+    ops = build_operators(mesh, material, dt, precision=precision, device=dev, cache=False)
+    build_s = time.perf_counter() - t0
+
+    def sync() -> None:
+        wp.synchronize_device(dev)
+
+    results: dict = {}
+    backends = ["warp"] + (["blas"] if dev.is_cpu else [])
+    for backend in backends:
+        world = wsim.World(fps=1.0 / dt, device=dev.alias, gravity=(0.0, -9.81, 0.0))
+        body = world.add(wsim.BemBody(mesh, material, dt, operators=ops, matvec=backend, profile=True,
+                                      angular_velocity=(0.0, 2.0, 1.0)))
+        x, nrm = body.rest_vertices, body.rest_normals
+        body.add_traction(lambda t: -2e3 * nrm * (x[:, :1] > 0) * (1.0 + np.sin(40.0 * t)))  # a pulsing squeeze
+        body.step()  # compile / first touch
+        body.timings = {k: 0.0 for k in body.timings}
+        n_prof = max(steps // 2, 5)
+        for _ in range(n_prof):
+            body.step()
+        stage = {k: v / n_prof for k, v in body.timings.items()}
+        body.profile = False
+        sync()
+        t1 = time.perf_counter()
+        for _ in range(steps):
+            body.step()
+        sync()
+        per_step = (time.perf_counter() - t1) / steps
+        so = body._so
+        h = wp.zeros(so.size, dtype=so.dtype, device=dev)
+        hist = _time(lambda: stepper.history(so, backend, body._U, body._P, body._B, body._step, h), 20, sync)
+        hist_bytes = so.H.capacity + so.G.capacity + so.DQ.capacity
+        results[backend] = {
+            "seconds_per_step": per_step,
+            "stage_seconds_per_step": stage,
+            "uncnst_seconds": stage["loads"] + stage["history"] + stage["solve"],
+            "errcr_seconds": stage["correction"] + stage["frame"],
+            "history_matvec_seconds": hist,
+            "history_matvec_GBps": hist_bytes / hist / 1e9,
+            "max_displacement": float(np.max(np.abs(body.displacement()))),
+        }
+    # the same history product through the reference a user would otherwise reach for
+    n3 = 3 * ops.n_nodes
+    refs: dict = {}
+    U = np.random.default_rng(0).standard_normal((ops.n_max, n3)).astype(ops.H.dtype)
+    Hs, Gs = ops.H[1:], ops.G[1:]
+
+    def numpy_history():
+        out = np.zeros(n3, dtype=ops.H.dtype)
+        for k in range(ops.n_max):
+            out += Gs[k] @ U[k]
+            out -= Hs[k] @ U[k]
+        return out
+
+    t_np = _time(numpy_history, 2, lambda: None)
+    refs["numpy_blas_host"] = {"history_matvec_seconds": t_np, "GBps": (Hs.nbytes + Gs.nbytes) / t_np / 1e9}
+    if dev.is_cuda:
+        try:
+            import torch
+
+            tdev = torch.device(f"cuda:{dev.ordinal}")
+            tH = torch.from_numpy(np.ascontiguousarray(Hs)).to(tdev)
+            tG = torch.from_numpy(np.ascontiguousarray(Gs)).to(tdev)
+            tU = torch.from_numpy(U).to(tdev)
+
+            def torch_history():
+                out = torch.zeros(n3, dtype=tH.dtype, device=tdev)
+                for k in range(ops.n_max):
+                    out += torch.mv(tG[k], tU[k])
+                    out -= torch.mv(tH[k], tU[k])
+                return out
+
+            def torch_one():
+                return torch.mv(tH[0], tU[0])
+
+            t_t = _time(torch_history, 20, torch.cuda.synchronize)
+            t_1 = _time(torch_one, 50, torch.cuda.synchronize)
+            refs["torch_mv"] = {
+                "torch": torch.__version__,
+                "history_matvec_seconds": t_t,
+                "GBps": (Hs.nbytes + Gs.nbytes) / t_t / 1e9,
+                "single_mv_GBps": Hs[0].nbytes / t_1 / 1e9,
+            }
+            del tH, tG
+        except ImportError:
+            refs["torch_mv"] = "torch not importable"
+    warp_gbps = results["warp"]["history_matvec_GBps"]
+    torch_gbps = refs.get("torch_mv", {}).get("GBps") if isinstance(refs.get("torch_mv"), dict) else None
+    return {
+        "case": name,
+        "device": dev.alias,
+        "gpu": dev.name if dev.is_cuda else None,
+        "N": ops.n_nodes,
+        "n_max": ops.n_max,
+        "precision": precision,
+        "dt": dt,
+        "build_seconds": round(build_s, 2),
+        "matrix_bytes_per_step": int(stepper.step_operators(ops, dev).matrix_bytes),
+        "backends": results,
+        "references": refs,
+        "warp_vs_torch_bandwidth": (warp_gbps / torch_gbps) if torch_gbps else None,
+        "paper_uncnst_seconds": PAPER_UNCNST.get(name.removesuffix("_small")),
+        "peak_host_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+        "peak_device_bytes": wp.get_mempool_used_mem_high(dev) if dev.is_cuda else None,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--cases", default="bumpy_cube_small")
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--precision", default="float32")
+    ap.add_argument("--mesh", default=None, help="mesh file for case 'mesh'")
+    ap.add_argument("--steps", type=int, default=200)
+    ap.add_argument("--one", default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.one:
+        print(json.dumps(run_case(args.one, args.device, args.precision, args.mesh, args.steps)), flush=True)
+        return
+    for name in args.cases.split(","):
+        if name not in CASES:
+            raise SystemExit(f"unknown case {name!r}; known: {', '.join(CASES)}")
+        cmd = [sys.executable, os.path.abspath(__file__), "--one", name, "--precision", args.precision,
+               "--steps", str(args.steps)]
+        for flag, value in (("--device", args.device), ("--mesh", args.mesh)):
+            if value is not None:
+                cmd += [flag, str(value)]
+        subprocess.run(cmd, check=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,388 @@
+"""BemBody: a surface-only elastodynamic BEM body in a moving rigid frame (paper Sec. 3).
+
+Per step n (length dt, fixed by the operators):
+
+1. nodal tractions p_n from the loads (``add_traction``), frame coordinates [Pa];
+   a_ext = A p_n, alpha_ext = C p_n (Eq. 10);
+2. the history h_n of Eq. (9) from ring buffers of the last n_max u, p and [a - g', alpha];
+3. u_n = H_0^-1 G' p_n + H_0^-1 h_n (Eq. 12); with ``frame_update=False`` the frame stays fixed
+   and Eq. (9) is solved with a = 0, alpha = 0 instead (the paper's comparison run, Fig. 5);
+4. error correction (Sec. 3.2.1, ``wsim.bem.correction``): rigid drift moves from u_n to a_n, alpha_n;
+5. frame update (Eq. 11, ``wsim.bem.frame``) with a_n = g' + a_ext + da, alpha_n = alpha_ext + dalpha.
+
+World-space surface points are R (x + u) + T. Steps 2-3 run on the body's Warp device
+(``wsim.bem.stepper``); 1, 4 and 5 are O(N) host work in float64.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import warp as wp
+
+from wsim import mesh as wmesh
+from wsim.bem import stepper
+from wsim.bem.frame import RigidFrame
+from wsim.bem.mass import mass_properties
+from wsim.bem.operators import PRECISIONS, BemOperators, build_operators
+from wsim.bem.surface import prepare_surface
+from wsim.body import Body
+from wsim.cache import OperatorCache
+from wsim.colliders import Collider
+from wsim.errors import InvalidParameter, SimulationDiverged
+from wsim.materials import ElasticMaterial
+from wsim.validate import as_vec3, finite_number
+
+TractionFn = Callable[[float], Any]
+STAGES = ("loads", "history", "solve", "correction", "frame")
+
+
+class BemBody(Body):
+    """An elastic body simulated by convolution-quadrature BEM in a rigid moving frame.
+
+    Args:
+        mesh: closed, outward-oriented triangle mesh (``trimesh.Trimesh`` or (vertices, faces)) [m].
+        material: linear-elastic material (``ElasticMaterial(..., incompressible=True)`` for nu = 0.5).
+        dt: time step [s]; the operators (and n_max) are built for it.
+        name: USD prim name.
+        position: translation applied to the mesh [m].
+        rotation: (3, 3) rotation applied to the mesh about its centre of mass (default identity).
+        velocity, angular_velocity: initial velocity of the centre of mass [m/s] and spin [rad/s] (world).
+        frame_update: move the frame with the body (Eq. 11). False: the frame is fixed at the start
+            pose and all motion is BEM displacement (linear elasticity: large rotations inflate).
+        error_correction: apply Sec. 3.2.1 each step (only with ``frame_update``).
+        gyroscopic: integrate the frame's angular momentum (torque-free precession) instead of
+            Eq. (11e)'s omega, which stays fixed under zero torque about any axis.
+        precision: storage of the dense matrices, "float32" (default) or "float64"; with
+            ``operators`` given, theirs (a different explicit value is an error).
+        method: CQ method "bdf1" (paper) or "bdf2".
+        double_nodes: crease angle [deg] for double nodes at sharp edges, or None.
+        n_max: history length override.
+        operators: a prebuilt :class:`~wsim.bem.BemOperators` for this mesh (skips the build).
+        matvec: "auto" (Warp on CUDA, BLAS on CPU), "warp" or "blas" (CPU only).
+        divergence_limit: |u| [m] beyond which the step stops with ``SimulationDiverged``
+            (default: the surface diameter; linear elasticity is meaningless past it).
+        cache: operator cache (True, False or an ``OperatorCache``).
+        progress: progress bar while the operators are built.
+        profile: synchronize the device after each stage so ``timings`` splits GPU time by stage.
+        **quadrature: quadrature knobs of ``build_operators``.
+    """
+
+    def __init__(
+        self,
+        mesh: Any,
+        material: ElasticMaterial,
+        dt: float,
+        *,
+        name: str = "bem_body",
+        position: Sequence[float] = (0.0, 0.0, 0.0),
+        rotation: Any = None,
+        velocity: Sequence[float] = (0.0, 0.0, 0.0),
+        angular_velocity: Sequence[float] = (0.0, 0.0, 0.0),
+        frame_update: bool = True,
+        error_correction: bool = True,
+        gyroscopic: bool = True,
+        precision: str | None = None,
+        method: str = "bdf1",
+        double_nodes: float | None = None,
+        n_max: int | None = None,
+        operators: BemOperators | None = None,
+        matvec: str = "auto",
+        divergence_limit: float | None = None,
+        cache: bool | OperatorCache = True,
+        progress: bool = False,
+        profile: bool = False,
+        **quadrature: Any,
+    ) -> None:
+        super().__init__(name, velocity, angular_velocity)
+        if not isinstance(material, ElasticMaterial):
+            raise InvalidParameter(f"body '{name}': material must be a wsim.ElasticMaterial")
+        dt = finite_number(dt, f"body '{name}': dt [s]")
+        if dt <= 0.0:
+            raise InvalidParameter(f"body '{name}': dt = {dt} s must be > 0")
+        if operators is not None and precision is None:
+            precision = operators.precision
+        precision = "float32" if precision is None else precision
+        if precision not in PRECISIONS:
+            raise InvalidParameter(f"body '{name}': precision = {precision!r} must be one of {', '.join(PRECISIONS)}")
+        if matvec not in stepper.BACKENDS:
+            raise InvalidParameter(f"body '{name}': matvec = {matvec!r} must be one of {', '.join(stepper.BACKENDS)}")
+        vertices, faces = wmesh.surface_arrays(mesh, f"body '{name}'")
+        # validates (closed, oriented, non-degenerate) before anything is built
+        surface = prepare_surface(vertices, faces, double_nodes=double_nodes, name=f"body '{name}'")
+        props = mass_properties(surface.nodes, surface.faces, material.rho)
+        R0 = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
+        if R0.shape != (3, 3) or not np.all(np.isfinite(R0)) or not np.allclose(R0 @ R0.T, np.eye(3), atol=1e-6) \
+                or np.linalg.det(R0) <= 0.0:
+            raise InvalidParameter(f"body '{name}': rotation must be a proper 3x3 rotation matrix")
+        if operators is not None:
+            if not isinstance(operators, BemOperators):
+                raise InvalidParameter(f"body '{name}': operators must be a wsim.bem.BemOperators")
+            if operators.surface.n_nodes != surface.n_nodes or not np.allclose(operators.surface.nodes, surface.nodes):
+                raise InvalidParameter(f"body '{name}': the given operators were built for another mesh")
+            if operators.precision != precision:
+                raise InvalidParameter(f"body '{name}': precision = {precision!r} but the operators store {operators.precision}")
+            if abs(operators.dt - dt) > 1e-12 * dt:
+                raise InvalidParameter(f"body '{name}': the given operators have dt = {operators.dt}, not {dt}")
+        self.material = material
+        self.dt = dt
+        self.frame_update = bool(frame_update)
+        self.error_correction = bool(error_correction) and self.frame_update
+        self.gyroscopic = bool(gyroscopic)
+        self.precision = precision
+        self.matvec = matvec
+        self.profile = bool(profile)
+        self._build_args = dict(method=method, precision=precision, double_nodes=double_nodes, n_max=n_max,
+                                cache=cache, progress=progress, **quadrature)
+        self._mesh = (vertices, faces)
+        self._faces = faces.astype(np.int32)
+        self._surface = surface
+        self._props = props
+        self._R0 = R0
+        self._T0 = props.com + as_vec3(position, f"body '{name}': position")  # rotation is about the com
+        self._ops = operators
+        self.divergence_limit = divergence_limit
+        if divergence_limit is not None:
+            self.divergence_limit = finite_number(divergence_limit, f"body '{name}': divergence_limit [m]")
+        self._loads: list[TractionFn] = []
+        # vertex <- mean of its nodes' displacements (double nodes share a vertex)
+        self._node_count = np.bincount(surface.vertex, minlength=len(vertices)).astype(np.float64)
+        self.timings: dict[str, float] = {k: 0.0 for k in STAGES}
+        self.steps = 0
+        self._bound = False
+
+    # -- public read-outs -------------------------------------------------------------------
+    @property
+    def faces(self) -> np.ndarray:
+        return self._faces
+
+    @property
+    def operators(self) -> BemOperators:
+        self._require_bound()
+        return self._ops
+
+    @property
+    def rest_vertices(self) -> np.ndarray:
+        """(V, 3) rest vertex positions in frame coordinates (origin at the centre of mass) [m]."""
+        return self._mesh[0] - self._props.com
+
+    @property
+    def rest_normals(self) -> np.ndarray:
+        """(V, 3) unit area-weighted vertex normals of the rest mesh (frame coordinates)."""
+        v, f = self._mesh
+        fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # |fn| = 2 area
+        n = np.zeros_like(v)
+        for k in range(3):
+            np.add.at(n, f[:, k], fn)
+        return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+    @property
+    def mass(self) -> float:
+        return self._props.mass
+
+    @property
+    def time(self) -> float:
+        """Simulated time of the body's state [s]."""
+        return self.steps * self.dt
+
+    @property
+    def frame(self) -> RigidFrame:
+        self._require_bound()
+        return self._frame
+
+    def displacement(self) -> np.ndarray:
+        """(N_nodes, 3) current displacement in frame coordinates [m]."""
+        self._require_bound()
+        return self._u.reshape(-1, 3).copy()
+
+    def vertex_displacement(self) -> np.ndarray:
+        """(V, 3) current displacement per mesh vertex (double-node copies averaged), frame coordinates."""
+        u = self._u.reshape(-1, 3)
+        out = np.zeros((len(self._node_count), 3))
+        np.add.at(out, self._surface.vertex, u)
+        return out / self._node_count[:, None]
+
+    def points(self) -> np.ndarray:
+        self._require_bound()
+        f = self._frame
+        return (self.rest_vertices + self.vertex_displacement()) @ f.R.T + f.T
+
+    def volume(self) -> float:
+        """Enclosed volume of the deformed surface [m^3] (divergence theorem)."""
+        return wmesh.signed_volume(self._surface.nodes + self._u.reshape(-1, 3), self._surface.faces)
+
+    def linear_momentum(self) -> np.ndarray:
+        """m T_dot [kg m/s] (the frame carries the body's momentum; deformation momentum is not tracked)."""
+        return self.mass * self.frame.velocity
+
+    def angular_momentum(self) -> np.ndarray:
+        """L about the centre of mass, world [kg m^2/s]."""
+        return self.frame.L.copy()
+
+    def kinetic_energy(self) -> float:
+        """Rigid kinetic energy of the frame, 1/2 m |T_dot|^2 + 1/2 omega . L [J]."""
+        f = self.frame
+        return 0.5 * self.mass * float(f.velocity @ f.velocity) + 0.5 * float(f.omega @ f.L)
+
+    # -- loads ------------------------------------------------------------------------------
+    def add_traction(self, fn: TractionFn) -> None:
+        """Add a load: ``fn(t)`` returns tractions [Pa] in frame coordinates, (V, 3) per mesh vertex
+        (or (N_nodes, 3) per node); loads add up. Evaluated once per step at the step's end time."""
+        if not callable(fn):
+            raise InvalidParameter(f"body '{self.name}': add_traction takes a callable fn(t) -> (V, 3) tractions")
+        self._loads.append(fn)
+
+    def _tractions(self, t: float) -> np.ndarray:
+        n = self._surface.n_nodes
+        p = np.zeros((n, 3))
+        n_vertices = len(self._node_count)
+        for fn in self._loads:
+            value = np.asarray(fn(t), dtype=np.float64)
+            if value.shape == (n_vertices, 3):
+                p += value[self._surface.vertex]
+            elif value.shape == (n, 3):
+                p += value
+            else:
+                raise InvalidParameter(
+                    f"body '{self.name}': a traction load returned shape {value.shape}; expected ({n_vertices}, 3) "
+                    f"per vertex or ({n}, 3) per node")
+            if not np.all(np.isfinite(value)):
+                raise InvalidParameter(f"body '{self.name}': a traction load returned non-finite values at t = {t:g} s")
+        return p.reshape(-1)
+
+    # -- World interface --------------------------------------------------------------------
+    def _require_bound(self) -> None:
+        if not self._bound:
+            raise InvalidParameter(f"body '{self.name}': add it to a World first (state is allocated there)")
+
+    def bind(self, device: wp.Device, gravity: np.ndarray, up: np.ndarray) -> None:
+        if self._ops is None:
+            self._ops = build_operators(self._mesh, self.material, self.dt, device=device, **self._build_args)
+        ops = self._ops
+        self._device = device
+        self._backend = stepper.resolve_backend(self.matvec, device)
+        self._so = stepper.step_operators(ops, device)
+        self._gravity = np.asarray(gravity, dtype=np.float64)
+        self._inertia = ops.inertia
+        self._inertia_inv = np.linalg.inv(ops.inertia)
+        if self.divergence_limit is None:
+            self.divergence_limit = ops.r_max
+        n3, n_max = self._so.size, ops.n_max
+        wdt = self._so.dtype
+        self._U = wp.zeros((n_max, n3), dtype=wdt, device=device)
+        self._P = wp.zeros((n_max, n3), dtype=wdt, device=device)
+        self._B = wp.zeros((n_max, 6), dtype=wdt, device=device)
+        self._p = wp.zeros(n3, dtype=wdt, device=device)
+        self._h = wp.zeros(n3, dtype=wdt, device=device)
+        self._u_dev = wp.zeros(n3, dtype=wdt, device=device)
+        self._u = np.zeros(n3)
+        self._frame = RigidFrame.at_rest(self._R0, self._T0, self.initial_velocity, self.initial_angular_velocity,
+                                         ops.inertia)
+        self._step = n_max  # ring index of the next step; offset by n_max so (step - k) >= 0
+        if not self.frame_update:
+            self._seed_rigid_history()
+        self._failure: tuple[str, str] | None = None
+        self._bound = True
+
+    def _seed_rigid_history(self) -> None:
+        """Without the frame, an initial velocity lives in u: u_{-k} = -k dt (v + omega x x), p = 0 (a
+        rigid motion at constant velocity is traction-free)."""
+        f = self._frame
+        v_b, w_b = f.R.T @ f.velocity, f.R.T @ f.omega
+        x = self._so.correction.x
+        rigid = (v_b + np.cross(w_b, x)).reshape(-1)
+        U = np.zeros((self._so.n_max, self._so.size))
+        for k in range(1, self._so.n_max + 1):
+            U[(self._step - k) % self._so.n_max] = -k * self.dt * rigid
+        self._U.assign(U.astype(PRECISIONS[self.precision]))
+        f.velocity = np.zeros(3)
+        f.omega = np.zeros(3)
+        f.L = np.zeros(3)
+
+    def attach_colliders(self, colliders: Sequence[Collider]) -> None:
+        # Contact for BEM bodies is a later issue: refuse rather than silently ignore colliders.
+        if colliders:
+            raise InvalidParameter(
+                f"body '{self.name}': BEM bodies do not collide yet; remove the World's colliders "
+                f"({', '.join(c.name for c in colliders)}) or use another body type")
+
+    def advance(self, t0: float, t1: float) -> None:
+        """Take steps of dt until the body's time is the nearest multiple of dt to t1."""
+        self._require_bound()
+        if self._failure is not None:
+            return
+        target = int(math.floor(t1 / self.dt + 0.5))
+        while self.steps < target:
+            self.step()
+            if self._failure is not None:
+                return
+
+    def check_finite(self, frame: int, time: float) -> None:
+        if self._failure is not None:
+            quantity, detail = self._failure
+            raise SimulationDiverged(self.name, frame, quantity, time, detail)
+
+    # -- the step -----------------------------------------------------------------------------
+    def _tick(self, stage: str, t0: float) -> float:
+        if self.profile and not self._device.is_cpu:
+            wp.synchronize_device(self._device)
+        t1 = time.perf_counter()
+        self.timings[stage] += t1 - t0
+        return t1
+
+    def step(self) -> None:
+        """One step of length dt (Eqs. 9-12, Sec. 3.2.1, Eq. 11)."""
+        so, f = self._so, self._frame
+        dtype = PRECISIONS[self.precision]
+        t = (self.steps + 1) * self.dt
+        t0 = time.perf_counter()
+        p = self._tractions(t) if self._loads else np.zeros(so.size)
+        ops = so.operators
+        a_ext, alpha_ext = ops.A @ p, ops.C @ p
+        if self._loads:
+            self._p.assign(p.astype(dtype))
+        t0 = self._tick("loads", t0)
+        stepper.history(so, self._backend, self._U, self._P, self._B, self._step, self._h)
+        t0 = self._tick("history", t0)
+        stepper.solve(so, self._backend, self._p, self._h, self._u_dev)
+        u = self._u_dev.numpy().astype(np.float64)
+        t0 = self._tick("solve", t0)
+        g_body = f.R.T @ self._gravity  # g' (Eq. 11a)
+        if self.frame_update:
+            da = dalpha = np.zeros(3)
+            if self.error_correction:
+                da, dalpha, u = so.correction.apply(u)
+            b = np.concatenate([a_ext + da, alpha_ext + dalpha])  # [a - g', alpha]
+        else:
+            # a = alpha = 0 in Eq. (9): H_0 u = G_0 p - D_0 g' + h
+            b = np.concatenate([-g_body, np.zeros(3)])
+            u = u + so.correction.E @ np.concatenate([-(a_ext + g_body), -alpha_ext])
+        t0 = self._tick("correction", t0)
+        slot = self._step % so.n_max
+        wp.copy(self._U, wp.array(u.astype(dtype), device="cpu"), dest_offset=slot * so.size)
+        wp.copy(self._P, self._p, dest_offset=slot * so.size)
+        wp.copy(self._B, wp.array(b.astype(dtype), device="cpu"), dest_offset=slot * 6)
+        if self.frame_update:
+            f.update(self.dt, self._gravity, b[:3], b[3:], self._inertia, self._inertia_inv, self.gyroscopic)
+            if self.steps % 100 == 99:
+                f.reorthonormalize()
+        self._u = u
+        self._step += 1
+        self.steps += 1
+        self._tick("frame", t0)
+        self._check_state()
+
+    def _check_state(self) -> None:
+        f = self._frame
+        for quantity, value in (("displacement", self._u), ("frame position", f.T), ("frame velocity", f.velocity),
+                                ("angular velocity", f.omega)):
+            if not np.all(np.isfinite(value)):
+                self._failure = (quantity, f"step {self.steps} (t = {self.time:.6g} s)")
+                return
+        peak = float(np.max(np.abs(self._u))) if self._u.size else 0.0
+        if peak > self.divergence_limit:
+            self._failure = ("displacement", f"|u| = {peak:.3g} m exceeds divergence_limit = "
+                             f"{self.divergence_limit:.3g} m at step {self.steps} (t = {self.time:.6g} s)")
