@@ -2,10 +2,11 @@
 
 Both are memory-bandwidth bound: every step reads 2 n_max + 2 dense 3N x 3N matrices once.
 One block of ``MATVEC_BLOCK`` threads computes one output row: each thread strides over the
-columns (consecutive threads read consecutive addresses, so every load is coalesced) and
-keeps one running sum; the block then reduces its partial sums (``tile_sum``). The kernels are
-generic over the storage precision: float32 (default, half the bytes) or float64, with the
-partial sums in the storage type.
+columns four at a time (vec4 loads; consecutive threads read consecutive 16-byte words, so every
+load is coalesced and wide) and keeps one running sum; the block then reduces its partial sums
+(``tile_sum``). Rows are stored with a pitch padded to a multiple of 4 columns (zeros), and the
+vectors with the same zero padding. The kernels are generic over the storage precision:
+float32 (default, half the bytes; vec4) or float64 (vec4d), partial sums in the storage type.
 
 Launch with ``wp.launch_tiled(..., dim=rows, block_dim=MATVEC_BLOCK)``. The stride is read with
 ``wp.block_dim()``: on the CPU Warp runs a block as one thread, which then sums the whole row.
@@ -35,8 +36,9 @@ def history_matvec(
 
         h_n = sum_{k=1}^{n_max} ( -H_k u_{n-k} + G_k p_{n-k} + [D_k Q_k] [a - g', alpha]_{n-k} ).
 
-    H[k-1], G[k-1] hold H_k, G_k (k = 1..n_max); DQ[k-1] is the (3N, 6) block [D_k Q_k]. The ring
-    buffers U, P (n_max, 3N) and B (n_max, 6) hold step m in row m mod n_max.
+    H[k-1], G[k-1] (vec4 columns) hold H_k, G_k (k = 1..n_max); DQ[k-1] is the (3N, 6) block
+    [D_k Q_k]. The ring buffers U, P (n_max, pitch / 4) and B (n_max, 6) hold step m in row
+    m mod n_max.
     """
     row, lane = wp.tid()
     stride = wp.block_dim()
@@ -47,7 +49,7 @@ def history_matvec(
         slot = (step - k) % n_max
         c = lane
         while c < cols:
-            acc += G[k - 1, row, c] * P[slot, c] - H[k - 1, row, c] * U[slot, c]
+            acc += wp.dot(G[k - 1, row, c], P[slot, c]) - wp.dot(H[k - 1, row, c], U[slot, c])
             c += stride
         j = lane
         while j < 6:
@@ -63,16 +65,23 @@ def solve_matvec(
     H0_inv: wp.array2d(dtype=Any),
     p: wp.array(dtype=Any),
     h: wp.array(dtype=Any),
+    with_p: int,
     u: wp.array(dtype=Any),
 ):
-    """Displacement of Eq. (12): u_n = H_0^-1 G' p_n + H_0^-1 h_n."""
+    """Displacement of Eq. (12): u_n = H_0^-1 G' p_n + H_0^-1 h_n (the first term only if ``with_p``:
+    a step without tractions reads one matrix instead of two)."""
     row, lane = wp.tid()
     stride = wp.block_dim()
     cols = H0_inv.shape[1]
     acc = u.dtype(0.0)
     c = lane
-    while c < cols:
-        acc += H0_inv_Gp[row, c] * p[c] + H0_inv[row, c] * h[c]
-        c += stride
+    if with_p != 0:
+        while c < cols:
+            acc += wp.dot(H0_inv_Gp[row, c], p[c]) + wp.dot(H0_inv[row, c], h[c])
+            c += stride
+    else:
+        while c < cols:
+            acc += wp.dot(H0_inv[row, c], h[c])
+            c += stride
     total = wp.tile_sum(wp.tile(acc))
     wp.tile_store(u, total, offset=row)

@@ -34,10 +34,7 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
     if mesh is None:
         shape = wmesh.fish(length=0.8, subdivisions=3)
     else:
-        shape = wmesh.load(mesh)
-        # fit a user model into the scene: 0.8 m long, centred above the origin
-        shape.apply_translation(-shape.bounding_box.centroid)
-        shape.apply_scale(0.8 / max(shape.extents))
+        shape = wmesh.load_fitted(mesh, 0.8)  # a user model: 0.8 m long, centred above the origin
     lift = 0.5 - float(np.min(shape.vertices[:, 1]))
     world.add(
         wsim.PbdBody(

@@ -73,6 +73,14 @@ def test_last_weight_needs_L_equal_n_max_plus_one():
 
 def test_history_length_and_bad_input():
     assert cq.n_max_for(r_max=0.8, c2=22.36, dt=0.01) == 5  # the paper's bumpy cube: n_max = 5
+    # Table 1 (r_max inside the spec's Sec. 3.2 ranges): the bunny and fish keep the paper's n_max;
+    # the torus (lam = 30.5) and beam (lam = 6.5) get the BDF1 smear margin 1.2 sqrt(lam) > 2
+    assert cq.n_max_for(r_max=0.19, c2=18.26, dt=0.003) == 5
+    assert cq.n_max_for(r_max=0.15, c2=100.0, dt=0.001) == 3
+    assert cq.n_max_for(r_max=0.305, c2=10.0, dt=0.001) == 37  # paper: 32
+    assert cq.n_max_for(r_max=0.56, c2=17.32, dt=0.005) == 9  # paper: 8
+    lam = 159.0
+    assert cq.n_max_for(r_max=lam, c2=1.0, dt=1.0) == int(lam + 1.2 * np.sqrt(lam))
     for bad in (dict(dt=0.0, n_max=5), dict(dt=0.01, n_max=0)):
         with pytest.raises(wsim.InvalidParameter):
             cq.sample_points(**bad)

@@ -88,9 +88,10 @@ def run_case(name: str, device: str | None, precision: str, mesh_path: str | Non
         sync()
         per_step = (time.perf_counter() - t1) / steps
         so = body._so
-        h = wp.zeros(so.size, dtype=so.dtype, device=dev)
-        hist = _time(lambda: stepper.history(so, backend, body._U, body._P, body._B, body._step, h), 20, sync)
-        hist_bytes = so.H.capacity + so.G.capacity + so.DQ.capacity
+        h = so.vectors()
+        hist = _time(lambda: stepper.history(so, body._U_k, body._P_k, body._B, body._step, h), 20, sync)
+        hist_bytes = so.history_bytes
+        matrix_bytes = so.matrix_bytes
         results[backend] = {
             "seconds_per_step": per_step,
             "stage_seconds_per_step": stage,
@@ -156,7 +157,7 @@ def run_case(name: str, device: str | None, precision: str, mesh_path: str | Non
         "precision": precision,
         "dt": dt,
         "build_seconds": round(build_s, 2),
-        "matrix_bytes_per_step": int(stepper.step_operators(ops, dev).matrix_bytes),
+        "matrix_bytes_per_step": int(matrix_bytes),
         "backends": results,
         "references": refs,
         "warp_vs_torch_bandwidth": (warp_gbps / torch_gbps) if torch_gbps else None,

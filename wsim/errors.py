@@ -28,7 +28,8 @@ class OutputError(WsimError, OSError):
 
 
 class SimulationDiverged(WsimError, RuntimeError):
-    """A step produced NaN or Inf.
+    """A step produced NaN or Inf (or, with ``reason``, another sign of divergence such as a
+    displacement beyond a body's ``divergence_limit``).
 
     Attributes:
         body: name of the body whose state went non-finite.
@@ -37,12 +38,13 @@ class SimulationDiverged(WsimError, RuntimeError):
         time: simulation time [s] at the end of that frame.
     """
 
-    def __init__(self, body: str, step: int, quantity: str, time: float, detail: str = "") -> None:
+    def __init__(self, body: str, step: int, quantity: str, time: float, detail: str = "",
+                 reason: str = "non-finite") -> None:
         self.body = body
         self.step = step
         self.quantity = quantity
         self.time = time
-        msg = f"body '{body}': non-finite {quantity} at frame {step} (t = {time:.6g} s)"
+        msg = f"body '{body}': {reason} {quantity} at frame {step} (t = {time:.6g} s)"
         if detail:
             msg += f"; {detail}"
         super().__init__(msg)

@@ -387,6 +387,15 @@ def load(path: str | os.PathLike, name: str | None = None) -> trimesh.Trimesh:
     return m
 
 
+def load_fitted(path: str | os.PathLike, size: float) -> trimesh.Trimesh:
+    """Load a mesh file, centre its bounding box at the origin and scale its longest side to ``size`` [m]
+    (how scenes place a user's ``--mesh`` model)."""
+    m = load(path)
+    m.apply_translation(-m.bounding_box.centroid)
+    m.apply_scale(_check_positive(size, "fitted mesh size") / max(m.extents))
+    return m
+
+
 def check_surface(vertices: Any, faces: Any, name: str = "mesh", *, closed: bool = True) -> None:
     """Validate a triangle surface; raise :class:`InvalidMesh` naming the first problem found.
 

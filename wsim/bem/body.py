@@ -2,16 +2,17 @@
 
 Per step n (length dt, fixed by the operators):
 
-1. nodal tractions p_n from the loads (``add_traction``), frame coordinates [Pa];
+1. the history h_n of Eq. (9) from ring buffers of the last n_max u, p and [a - g', alpha]
+   (launched first: it needs only past steps, so the host evaluates the loads meanwhile);
+2. nodal tractions p_n from the loads (``add_traction``), frame coordinates [Pa];
    a_ext = A p_n, alpha_ext = C p_n (Eq. 10);
-2. the history h_n of Eq. (9) from ring buffers of the last n_max u, p and [a - g', alpha];
 3. u_n = H_0^-1 G' p_n + H_0^-1 h_n (Eq. 12); with ``frame_update=False`` the frame stays fixed
    and Eq. (9) is solved with a = 0, alpha = 0 instead (the paper's comparison run, Fig. 5);
 4. error correction (Sec. 3.2.1, ``wsim.bem.correction``): rigid drift moves from u_n to a_n, alpha_n;
 5. frame update (Eq. 11, ``wsim.bem.frame``) with a_n = g' + a_ext + da, alpha_n = alpha_ext + dalpha.
 
-World-space surface points are R (x + u) + T. Steps 2-3 run on the body's Warp device
-(``wsim.bem.stepper``); 1, 4 and 5 are O(N) host work in float64.
+World-space surface points are R (x + u) + T. Steps 1 and 3 run on the body's Warp device
+(``wsim.bem.stepper``); 2, 4 and 5 are O(N) host work in float64.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ from wsim.materials import ElasticMaterial
 from wsim.validate import as_vec3, finite_number
 
 TractionFn = Callable[[float], Any]
-STAGES = ("loads", "history", "solve", "correction", "frame")
+STAGES = ("history", "loads", "solve", "correction", "frame")
 
 
 class BemBody(Body):
@@ -263,28 +264,33 @@ class BemBody(Body):
             self._ops = build_operators(self._mesh, self.material, self.dt, device=device, **self._build_args)
         ops = self._ops
         self._device = device
-        self._backend = stepper.resolve_backend(self.matvec, device)
-        self._so = stepper.step_operators(ops, device)
+        self._so = so = stepper.step_operators(ops, device, stepper.resolve_backend(self.matvec, device))
         self._gravity = np.asarray(gravity, dtype=np.float64)
         self._inertia = ops.inertia
         self._inertia_inv = np.linalg.inv(ops.inertia)
         if self.divergence_limit is None:
             self.divergence_limit = ops.r_max
-        n3, n_max = self._so.size, ops.n_max
-        wdt = self._so.dtype
-        self._U = wp.zeros((n_max, n3), dtype=wdt, device=device)
-        self._P = wp.zeros((n_max, n3), dtype=wdt, device=device)
-        self._B = wp.zeros((n_max, 6), dtype=wdt, device=device)
-        self._p = wp.zeros(n3, dtype=wdt, device=device)
-        self._h = wp.zeros(n3, dtype=wdt, device=device)
-        self._u_dev = wp.zeros(n3, dtype=wdt, device=device)
-        self._u = np.zeros(n3)
+        n_max = ops.n_max
+        # device state: rings of the last n_max steps and the step's vectors, rows of length pitch
+        self._U, self._P = so.vectors(n_max), so.vectors(n_max)
+        self._B = wp.zeros((n_max, 6), dtype=so.dtype, device=device)
+        self._p, self._h, self._u_dev = so.vectors(), so.vectors(), so.vectors()
+        view = stepper.vec4_view if so.backend == "warp" else (lambda a: a)
+        self._U_k, self._P_k, self._p_k, self._h_k = view(self._U), view(self._P), view(self._p), view(self._h)
+        self._p_live = False
+        # host staging (page-locked on CUDA, so the per-step copies are direct DMA)
+        pinned = device.is_cuda
+        self._u_out = wp.zeros(so.pitch, dtype=so.dtype, device="cpu", pinned=pinned)
+        self._u_in = wp.zeros(so.pitch, dtype=so.dtype, device="cpu", pinned=pinned)
+        self._p_in = wp.zeros(so.pitch, dtype=so.dtype, device="cpu", pinned=pinned)
+        self._b_in = wp.zeros(6, dtype=so.dtype, device="cpu", pinned=pinned)
+        self._u = np.zeros(so.size)
         self._frame = RigidFrame.at_rest(self._R0, self._T0, self.initial_velocity, self.initial_angular_velocity,
                                          ops.inertia)
         self._step = n_max  # ring index of the next step; offset by n_max so (step - k) >= 0
         if not self.frame_update:
             self._seed_rigid_history()
-        self._failure: tuple[str, str] | None = None
+        self._failure: tuple[str, str, str] | None = None  # quantity, detail, reason
         self._bound = True
 
     def _seed_rigid_history(self) -> None:
@@ -294,9 +300,9 @@ class BemBody(Body):
         v_b, w_b = f.R.T @ f.velocity, f.R.T @ f.omega
         x = self._so.correction.x
         rigid = (v_b + np.cross(w_b, x)).reshape(-1)
-        U = np.zeros((self._so.n_max, self._so.size))
+        U = np.zeros((self._so.n_max, self._so.pitch))
         for k in range(1, self._so.n_max + 1):
-            U[(self._step - k) % self._so.n_max] = -k * self.dt * rigid
+            U[(self._step - k) % self._so.n_max, : self._so.size] = -k * self.dt * rigid
         self._U.assign(U.astype(PRECISIONS[self.precision]))
         f.velocity = np.zeros(3)
         f.omega = np.zeros(3)
@@ -322,8 +328,8 @@ class BemBody(Body):
 
     def check_finite(self, frame: int, time: float) -> None:
         if self._failure is not None:
-            quantity, detail = self._failure
-            raise SimulationDiverged(self.name, frame, quantity, time, detail)
+            quantity, detail, reason = self._failure
+            raise SimulationDiverged(self.name, frame, quantity, time, detail, reason)
 
     # -- the step -----------------------------------------------------------------------------
     def _tick(self, stage: str, t0: float) -> float:
@@ -336,19 +342,29 @@ class BemBody(Body):
     def step(self) -> None:
         """One step of length dt (Eqs. 9-12, Sec. 3.2.1, Eq. 11)."""
         so, f = self._so, self._frame
-        dtype = PRECISIONS[self.precision]
+        n3 = so.size
         t = (self.steps + 1) * self.dt
         t0 = time.perf_counter()
-        p = self._tractions(t) if self._loads else np.zeros(so.size)
-        ops = so.operators
-        a_ext, alpha_ext = ops.A @ p, ops.C @ p
-        if self._loads:
-            self._p.assign(p.astype(dtype))
-        t0 = self._tick("loads", t0)
-        stepper.history(so, self._backend, self._U, self._P, self._B, self._step, self._h)
+        # the history needs only past steps: launch it first, so the host evaluates the loads
+        # while the device streams the matrices
+        stepper.history(so, self._U_k, self._P_k, self._B, self._step, self._h)
         t0 = self._tick("history", t0)
-        stepper.solve(so, self._backend, self._p, self._h, self._u_dev)
-        u = self._u_dev.numpy().astype(np.float64)
+        p = self._tractions(t) if self._loads else None
+        has_p = p is not None and bool(np.any(p))
+        ops = so.operators
+        a_ext, alpha_ext = (ops.A @ p, ops.C @ p) if has_p else (np.zeros(3), np.zeros(3))
+        if has_p:
+            self._p_in.numpy()[:n3] = p
+            wp.copy(self._p, self._p_in, count=n3)
+            self._p_live = True
+        elif self._p_live:
+            self._p.zero_()
+            self._p_live = False
+        t0 = self._tick("loads", t0)
+        stepper.solve(so, self._p_k if has_p else None, self._h_k, self._u_dev)
+        wp.copy(self._u_out, self._u_dev, count=n3)
+        wp.synchronize_device(self._device)
+        u = self._u_out.numpy()[:n3].astype(np.float64)
         t0 = self._tick("solve", t0)
         g_body = f.R.T @ self._gravity  # g' (Eq. 11a)
         if self.frame_update:
@@ -362,9 +378,11 @@ class BemBody(Body):
             u = u + so.correction.E @ np.concatenate([-(a_ext + g_body), -alpha_ext])
         t0 = self._tick("correction", t0)
         slot = self._step % so.n_max
-        wp.copy(self._U, wp.array(u.astype(dtype), device="cpu"), dest_offset=slot * so.size)
-        wp.copy(self._P, self._p, dest_offset=slot * so.size)
-        wp.copy(self._B, wp.array(b.astype(dtype), device="cpu"), dest_offset=slot * 6)
+        self._u_in.numpy()[:n3] = u
+        self._b_in.numpy()[:] = b
+        wp.copy(self._U, self._u_in, dest_offset=slot * so.pitch, count=n3)
+        wp.copy(self._P, self._p, dest_offset=slot * so.pitch, count=n3)
+        wp.copy(self._B, self._b_in, dest_offset=slot * 6, count=6)
         if self.frame_update:
             f.update(self.dt, self._gravity, b[:3], b[3:], self._inertia, self._inertia_inv, self.gyroscopic)
             if self.steps % 100 == 99:
@@ -380,9 +398,9 @@ class BemBody(Body):
         for quantity, value in (("displacement", self._u), ("frame position", f.T), ("frame velocity", f.velocity),
                                 ("angular velocity", f.omega)):
             if not np.all(np.isfinite(value)):
-                self._failure = (quantity, f"step {self.steps} (t = {self.time:.6g} s)")
+                self._failure = (quantity, f"step {self.steps} (t = {self.time:.6g} s)", "non-finite")
                 return
         peak = float(np.max(np.abs(self._u))) if self._u.size else 0.0
         if peak > self.divergence_limit:
             self._failure = ("displacement", f"|u| = {peak:.3g} m exceeds divergence_limit = "
-                             f"{self.divergence_limit:.3g} m at step {self.steps} (t = {self.time:.6g} s)")
+                             f"{self.divergence_limit:.3g} m at step {self.steps} (t = {self.time:.6g} s)", "diverging")

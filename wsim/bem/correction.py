@@ -70,6 +70,11 @@ class Correction:
     D0: np.ndarray
     E: np.ndarray
 
+    def __post_init__(self) -> None:  # derived once: q = x - c0, w q, sum w
+        object.__setattr__(self, "q", self.x - self.c0)
+        object.__setattr__(self, "wq", self.w[:, None] * (self.x - self.c0))
+        object.__setattr__(self, "w_sum", float(self.w.sum()))
+
     @classmethod
     def from_operators(cls, ops) -> Correction:
         n = ops.n_nodes
@@ -90,11 +95,10 @@ class Correction:
         """Steps 1-6 for the (3N,) displacement u: returns (da, dalpha, corrected u)."""
         n = self.x.shape[0]
         u3 = u.reshape(n, 3)
-        t = (self.w @ u3) / self.w.sum()
+        t = (self.w @ u3) / self.w_sum
         da = -self.K_a @ t
-        q = self.x - self.c0
-        p = q + u3 - t
-        R_e = nearest_rotation((self.w[:, None] * p).T @ q)
+        p = self.q + u3 - t
+        R_e = nearest_rotation(p.T @ self.wq)
         du = (p @ R_e - p).reshape(-1)  # rows of R_e^T p_i, minus p_i: u'' - u'
         r1 = -self.H0_T @ t - self.D0 @ da
         dalpha = self.P_Q @ r1 + self.P_Q_H0 @ du

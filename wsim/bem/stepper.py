@@ -3,15 +3,17 @@
 ``StepOperators`` holds, on one Warp device, what every step reads: H_k, G_k (k = 1..n_max),
 the (3N, 6) blocks [D_k Q_k], H_0^-1 and H_0^-1 G' (paper Eq. 12) in the storage precision, plus
 the error-correction pieces (``wsim.bem.correction``). It is immutable and shared by every body
-built on the same operator set and device.
+built on the same operator set, device and backend.
 
 Two backends compute the passes (``history`` and ``solve``):
 
-* ``"warp"``: the kernels of ``wsim.kernels.bem_step`` (one block per row, bandwidth bound);
-* ``"blas"``: numpy matrix-vector products on views of the same arrays (CPU device only).
+* ``"warp"``: the kernels of ``wsim.kernels.bem_step`` (one block per row, vec4 loads, bandwidth
+  bound). Rows are stored with a pitch padded to a multiple of 4 columns, vectors likewise;
+* ``"blas"``: numpy matrix-vector products (CPU device only) on the host operator arrays
+  themselves (no copy, pitch 3N).
 
 ``"auto"`` picks Warp on CUDA and BLAS on the CPU, where Warp's kernels run on one thread and
-numpy's BLAS uses every core (``tools/bench_bem_step.py`` measures both).
+numpy's BLAS uses every core (``tools/bench_bem_step.py`` measures both: 7x on 2 cores).
 """
 
 from __future__ import annotations
@@ -29,21 +31,28 @@ from wsim.errors import InvalidParameter
 from wsim.kernels import bem_step as ks
 
 BACKENDS = ("auto", "warp", "blas")
+_VEC4 = {wp.float32: wp.vec4f, wp.float64: wp.vec4d}
 
 
 @dataclass(frozen=True)
 class StepOperators:
-    """Per-device, per-precision operator arrays of the step (see module docstring)."""
+    """Per-device, per-backend operator arrays of the step (see module docstring).
+
+    ``pitch`` is the stored row length (3N, or 3N rounded up to a multiple of 4 for Warp).
+    """
 
     operators: BemOperators
     device: wp.Device
+    backend: str
     dtype: Any
-    H: wp.array  # (n_max, 3N, 3N): H_1..H_n_max
+    pitch: int
+    H: wp.array  # (n_max, 3N, pitch): H_1..H_n_max
     G: wp.array
     DQ: wp.array  # (n_max, 3N, 6)
-    H0_inv: wp.array
+    H0_inv: wp.array  # (3N, pitch)
     H0_inv_Gp: wp.array
     correction: Correction
+    vec4: dict[str, wp.array]  # Warp backend: vec4 views of H, G, H0_inv, H0_inv_Gp
 
     @property
     def n_max(self) -> int:
@@ -55,34 +64,72 @@ class StepOperators:
         return 3 * self.operators.n_nodes
 
     @property
+    def history_bytes(self) -> int:
+        """Bytes the history pass reads: 2 n_max dense matrices and the small blocks."""
+        return int(self.H.capacity + self.G.capacity + self.DQ.capacity)
+
+    @property
     def matrix_bytes(self) -> int:
-        """Bytes the two passes read per step: 2 n_max + 2 dense matrices (and the small blocks)."""
-        return int(self.H.capacity + self.G.capacity + self.DQ.capacity + self.H0_inv.capacity + self.H0_inv_Gp.capacity)
+        """Bytes a step with tractions reads: 2 n_max + 2 dense matrices (and the small blocks)."""
+        return self.history_bytes + int(self.H0_inv.capacity + self.H0_inv_Gp.capacity)
+
+    def vectors(self, rows: int | None = None) -> wp.array:
+        """Zeroed storage for ``rows`` vectors (or one) of length ``pitch`` on the device."""
+        shape = self.pitch if rows is None else (rows, self.pitch)
+        return wp.zeros(shape, dtype=self.dtype, device=self.device)
 
 
-# One upload per (operator set, device): bodies sharing a set share device memory too. Entries
-# disappear with the last body that holds them; nothing here changes results.
+def vec4_view(a: wp.array) -> wp.array:
+    """The same memory as ``a`` (last axis a multiple of 4) seen as vec4 elements."""
+    shape = (*a.shape[:-1], a.shape[-1] // 4)
+    return wp.array(ptr=a.ptr, dtype=_VEC4[a.dtype], shape=shape, device=a.device, copy=False)
+
+
+def _upload_padded(a: np.ndarray, dtype: Any, wdt: Any, pitch: int, device: wp.Device) -> wp.array:
+    """(..., R, C) host matrix(es) into a (..., R, pitch) device array, zero padded, one matrix at a time."""
+    out = wp.zeros((*a.shape[:-1], pitch), dtype=wdt, device=device)
+    mats = a.reshape(-1, *a.shape[-2:])
+    rows = mats.shape[1]
+    staging = np.zeros((rows, pitch), dtype=dtype)
+    for m, mat in enumerate(mats):
+        staging[:, : a.shape[-1]] = mat
+        wp.copy(out, wp.array(staging, dtype=wdt, device="cpu", copy=False), dest_offset=m * rows * pitch)
+        wp.synchronize_device(device)  # the staging buffer is reused
+    return out
+
+
+# One upload per (operator set, device, backend): bodies sharing a set share device memory too.
+# Entries disappear with the last body that holds them; nothing here changes results.
 _SHARED: weakref.WeakValueDictionary = weakref.WeakValueDictionary()
 
 
-def step_operators(ops: BemOperators, device: wp.Device) -> StepOperators:
-    """The (shared) device copy of ``ops`` for ``device``."""
-    key = (ops.key or f"id{id(ops)}", device.alias)  # the content key covers precision and every input
+def step_operators(ops: BemOperators, device: wp.Device, backend: str) -> StepOperators:
+    """The (shared) device copy of ``ops`` for ``device`` and a resolved ``backend``."""
+    key = (ops.key or f"id{id(ops)}", device.alias, backend)  # the content key covers precision and inputs
     found = _SHARED.get(key)
     if found is not None:
         return found
     dtype = PRECISIONS[ops.precision]
     wdt = wp.float32 if dtype == np.float32 else wp.float64
+    n3 = 3 * ops.n_nodes
     dq = np.concatenate([ops.D[1:], ops.Q[1:]], axis=2).astype(dtype)
+    if backend == "warp":
+        pitch = -(-n3 // 4) * 4
 
-    def upload(a: np.ndarray) -> wp.array:
-        a = np.ascontiguousarray(a, dtype=dtype)
-        # on the CPU the Warp array aliases the host operator (no second copy of gigabytes)
-        return wp.array(a, dtype=wdt, device=device, copy=not device.is_cpu)
+        def upload(a: np.ndarray) -> wp.array:
+            return _upload_padded(a, dtype, wdt, pitch, device)
+    else:  # BLAS on the CPU: the Warp arrays alias the host operators (no second copy of gigabytes)
+        pitch = n3
 
+        def upload(a: np.ndarray) -> wp.array:
+            return wp.array(np.ascontiguousarray(a, dtype=dtype), dtype=wdt, device=device, copy=False)
+
+    mats = {"H": upload(ops.H[1:]), "G": upload(ops.G[1:]), "H0_inv": upload(ops.H0_inv),
+            "H0_inv_Gp": upload(ops.H0_inv_Gp)}
     out = StepOperators(
-        operators=ops, device=device, dtype=wdt, H=upload(ops.H[1:]), G=upload(ops.G[1:]), DQ=upload(dq),
-        H0_inv=upload(ops.H0_inv), H0_inv_Gp=upload(ops.H0_inv_Gp), correction=Correction.from_operators(ops),
+        operators=ops, device=device, backend=backend, dtype=wdt, pitch=pitch, DQ=wp.array(dq, dtype=wdt, device=device),
+        correction=Correction.from_operators(ops), vec4={k: vec4_view(v) for k, v in mats.items()} if backend == "warp" else {},
+        **mats,
     )
     _SHARED[key] = out
     return out
@@ -98,11 +145,12 @@ def resolve_backend(backend: str, device: wp.Device) -> str:
     return backend
 
 
-def history(so: StepOperators, backend: str, U: wp.array, P: wp.array, B: wp.array, step: int, h: wp.array) -> None:
-    """h_n of Eq. (9) into ``h`` (ring row m holds step m mod n_max)."""
-    if backend == "warp":
+def history(so: StepOperators, U: wp.array, P: wp.array, B: wp.array, step: int, h: wp.array) -> None:
+    """h_n of Eq. (9) into ``h`` (ring row m holds step m mod n_max). For the Warp backend U and P
+    are the vec4 views of the rings (``vec4_view``)."""
+    if so.backend == "warp":
         wp.launch_tiled(ks.history_matvec, dim=so.size, block_dim=int(ks.MATVEC_BLOCK), device=so.device,
-                        inputs=[so.H, so.G, U, P, so.DQ, B, step, h])
+                        inputs=[so.vec4["H"], so.vec4["G"], U, P, so.DQ, B, step, h])
         return
     H, G, DQ = so.H.numpy(), so.G.numpy(), so.DQ.numpy()
     Un, Pn, Bn = U.numpy(), P.numpy(), B.numpy()
@@ -116,10 +164,14 @@ def history(so: StepOperators, backend: str, U: wp.array, P: wp.array, B: wp.arr
     h.numpy()[:] = out
 
 
-def solve(so: StepOperators, backend: str, p: wp.array, h: wp.array, u: wp.array) -> None:
-    """u_n = H_0^-1 G' p_n + H_0^-1 h_n (Eq. 12) into ``u``."""
-    if backend == "warp":
+def solve(so: StepOperators, p: wp.array | None, h: wp.array, u: wp.array) -> None:
+    """u_n = H_0^-1 G' p_n + H_0^-1 h_n (Eq. 12) into ``u``; ``p=None`` means p_n = 0. For the Warp
+    backend p and h are vec4 views."""
+    if so.backend == "warp":
         wp.launch_tiled(ks.solve_matvec, dim=so.size, block_dim=int(ks.MATVEC_BLOCK), device=so.device,
-                        inputs=[so.H0_inv_Gp, so.H0_inv, p, h, u])
+                        inputs=[so.vec4["H0_inv_Gp"], so.vec4["H0_inv"], h if p is None else p, h, int(p is not None), u])
         return
-    u.numpy()[:] = so.H0_inv_Gp.numpy() @ p.numpy() + so.H0_inv.numpy() @ h.numpy()
+    out = so.H0_inv.numpy() @ h.numpy()
+    if p is not None:
+        out += so.H0_inv_Gp.numpy() @ p.numpy()
+    u.numpy()[:] = out
