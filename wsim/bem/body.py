@@ -341,7 +341,13 @@ class BemBody(Body):
 
     def step(self) -> None:
         """One step of length dt (Eqs. 9-12, Sec. 3.2.1, Eq. 11)."""
-        so, f = self._so, self._frame
+        u, a_ext, alpha_ext = self.unconstrained_solve()
+        self._finish_step(u, a_ext, alpha_ext, time.perf_counter())
+
+    def unconstrained_solve(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The paper's UNCNST stage of the coming step: history, loads and Eq. (12), without
+        changing any state. Returns (u_n float64, a_ext, alpha_ext)."""
+        so = self._so
         n3 = so.size
         t = (self.steps + 1) * self.dt
         t0 = time.perf_counter()
@@ -365,7 +371,13 @@ class BemBody(Body):
         wp.copy(self._u_out, self._u_dev, count=n3)
         wp.synchronize_device(self._device)
         u = self._u_out.numpy()[:n3].astype(np.float64)
-        t0 = self._tick("solve", t0)
+        self._tick("solve", t0)
+        return u, a_ext, alpha_ext
+
+    def _finish_step(self, u: np.ndarray, a_ext: np.ndarray, alpha_ext: np.ndarray, t0: float) -> None:
+        """Error correction, ring update and frame update of the step (the paper's ERRCR)."""
+        so, f = self._so, self._frame
+        n3 = so.size
         g_body = f.R.T @ self._gravity  # g' (Eq. 11a)
         if self.frame_update:
             da = dalpha = np.zeros(3)
