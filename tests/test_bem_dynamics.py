@@ -384,9 +384,10 @@ def test_device_trajectory_matches_cpu_blas(device, ops_cache):
 
 
 # --------------------------------------------------------------------------------------------
-SOFT_GROWTH = ("1000x softer at the base dt (c2 dt / h ~ 0.007, n_max 529): |u| grows slowly (x35 over "
-               "6000 steps) whatever n_max, precision or spin - a collocation CQ-BEM instability at tiny "
-               "c2 dt / h; the run later stops with SimulationDiverged")
+SOFT_GROWTH = ("1000x softer at the base dt (c2 dt / h ~ 0.007, n_max 529): the sphere's second breathing mode "
+               "grows slowly (x35 over 6000 steps) whatever n_max, precision, eps, quadrature or spin: BDF1's "
+               "damping (~ (omega dt)^2) falls below the coarse mesh's spurious anti-damping; the run later "
+               "stops with SimulationDiverged")
 
 
 @pytest.mark.slow

@@ -3,7 +3,7 @@
     python tools/study_bem_stability.py                      # every case, 10^4 steps each
     python tools/study_bem_stability.py --cases soft,fast_spin --steps 2000
 
-Each case is a 42-node sphere (radius 0.1 m) that spins, falls under gravity and is squeezed on
+Each case is a 42-node sphere (radius 0.1 m; ``--subdivisions`` refines it) that spins, falls under gravity and is squeezed on
 one side for the first 20 steps, then runs free. The base material is E = 1e5 Pa, nu = 0.3,
 rho = 1000 kg/m^3 and the base dt is a tenth of the breathing period (2.0 ms). A case passes if
 it stays bounded (the largest |u| over the last tenth of the run is no larger than the largest
@@ -34,7 +34,7 @@ CASES = {
 }
 
 
-def run_case(name: str, steps: int = 10_000, device: str = "cpu") -> dict:
+def run_case(name: str, steps: int = 10_000, device: str = "cpu", subdivisions: int = 1) -> dict:
     import trimesh
 
     import wsim
@@ -44,7 +44,7 @@ def run_case(name: str, steps: int = 10_000, device: str = "cpu") -> dict:
     base = wsim.ElasticMaterial(E=1e5, nu=0.3, rho=1000.0)
     dt = dt_factor * 0.1 * 2.0 * math.pi / breathing_frequency(base, 0.1)
     material = wsim.ElasticMaterial(E=1e5 * e_factor, nu=nu, rho=1000.0, incompressible=incompressible)
-    mesh = trimesh.creation.icosphere(subdivisions=1, radius=0.1)
+    mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=0.1)
     t0 = time.perf_counter()
     world = wsim.World(fps=1.0 / dt, device=device, gravity=(0.0, -9.81, 0.0))
     body = world.add(wsim.BemBody(mesh, material, dt, name=name, angular_velocity=(0.3, 2.0 * math.pi * spin, 0.0),
@@ -78,7 +78,7 @@ def run_case(name: str, steps: int = 10_000, device: str = "cpu") -> dict:
         outcome = "unbounded"
     omega = body.frame.omega
     return {
-        "case": name, "device": device, "steps": body.steps, "dt": dt, "n_max": body.operators.n_max,
+        "case": name, "device": device, "nodes": body.operators.n_nodes, "steps": body.steps, "dt": dt, "n_max": body.operators.n_max,
         "E": material.E, "nu": nu, "spin_rev_s": spin, "outcome": outcome, "message": message,
         "max_u_first_half": peak_half, "max_u_last_tenth": peak_tail, "max_u_by_decile": deciles, "max_volume_change_last_tenth": vol_tail,
         "spin_change": float(np.linalg.norm(omega) / np.linalg.norm(body.initial_angular_velocity) - 1.0),
@@ -91,6 +91,7 @@ def main() -> None:
     ap.add_argument("--cases", default=",".join(CASES))
     ap.add_argument("--steps", type=int, default=10_000)
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--subdivisions", type=int, default=1, help="icosphere subdivisions (1: 42 nodes, 2: 162, 3: 642)")
     args = ap.parse_args()
     from wsim.device import quiet_warp
 
@@ -98,7 +99,7 @@ def main() -> None:
     for name in args.cases.split(","):
         if name not in CASES:
             raise SystemExit(f"unknown case {name!r}; known: {', '.join(CASES)}")
-        print(json.dumps(run_case(name, args.steps, args.device)), flush=True)
+        print(json.dumps(run_case(name, args.steps, args.device, args.subdivisions)), flush=True)
 
 
 if __name__ == "__main__":
