@@ -66,6 +66,10 @@ class BemBody(Body):
         matvec: "auto" (Warp on CUDA, BLAS on CPU), "warp" or "blas" (CPU only).
         divergence_limit: |u| [m] beyond which the step stops with ``SimulationDiverged``
             (default: the surface diameter; linear elasticity is meaningless past it).
+        growth_check: stop with ``SimulationDiverged`` when the displacement of an unloaded body
+            keeps growing: a passive elastic body cannot gain energy, so |u| rising by more than
+            20 % per history window (n_max steps) for 5 windows in a row, with no traction
+            applied, is a numerical instability caught early (see ``_check_growth``).
         cache: operator cache (True, False or an ``OperatorCache``).
         progress: progress bar while the operators are built.
         profile: synchronize the device after each stage so ``timings`` splits GPU time by stage.
@@ -93,6 +97,7 @@ class BemBody(Body):
         operators: BemOperators | None = None,
         matvec: str = "auto",
         divergence_limit: float | None = None,
+        growth_check: bool = True,
         cache: bool | OperatorCache = True,
         progress: bool = False,
         profile: bool = False,
@@ -149,6 +154,7 @@ class BemBody(Body):
         if divergence_limit is not None:
             self.divergence_limit = finite_number(divergence_limit, f"body '{name}': divergence_limit [m]")
         self._loads: list[TractionFn] = []
+        self.growth_check = bool(growth_check)
         # vertex <- mean of its nodes' displacements (double nodes share a vertex)
         self._node_count = np.bincount(surface.vertex, minlength=len(vertices)).astype(np.float64)
         self.timings: dict[str, float] = {k: 0.0 for k in STAGES}
@@ -291,6 +297,8 @@ class BemBody(Body):
         if not self.frame_update:
             self._seed_rigid_history()
         self._failure: tuple[str, str, str] | None = None  # quantity, detail, reason
+        self._last_loaded = 0  # last step with a nonzero traction
+        self._window = (max(ops.n_max, 20), 0.0, 0.0, 0)  # (length, this max, previous max, growing windows)
         self._bound = True
 
     def _seed_rigid_history(self) -> None:
@@ -349,6 +357,7 @@ class BemBody(Body):
         changing any state. Returns (u_n float64, a_ext, alpha_ext)."""
         so = self._so
         n3 = so.size
+        self._loaded_now = False
         t = (self.steps + 1) * self.dt
         t0 = time.perf_counter()
         # the history needs only past steps: launch it first, so the host evaluates the loads
@@ -360,6 +369,7 @@ class BemBody(Body):
         ops = so.operators
         a_ext, alpha_ext = (ops.A @ p, ops.C @ p) if has_p else (np.zeros(3), np.zeros(3))
         if has_p:
+            self._loaded_now = True
             self._p_in.numpy()[:n3] = p
             wp.copy(self._p, self._p_in, count=n3)
             self._p_live = True
@@ -405,6 +415,26 @@ class BemBody(Body):
         self._tick("frame", t0)
         self._check_state()
 
+    def _check_growth(self, peak: float) -> None:
+        """Windows of n_max steps: five in a row, all unloaded, each with a peak |u| 20 % above the
+        last and above round-off (1e-9 of the body size), mean a growing mode of the discrete
+        system - the physical body, passive and unloaded, can only ring down (BDF1 damps it)."""
+        length, current, previous, growing = self._window
+        current = max(current, peak)
+        if self.steps % length == 0:
+            unloaded = self.steps - self._last_loaded >= 2 * length  # this window and the one before
+            if unloaded and previous > 1e-9 * self._so.operators.r_max and current > 1.2 * previous:
+                growing += 1
+            else:
+                growing = 0
+            if growing >= 5:
+                self._failure = ("displacement", f"|u| grew {current / previous:.2f}x per {length}-step window for "
+                                 f"{growing} windows with no load, to {current:.3g} m at step {self.steps} "
+                                 f"(t = {self.time:.6g} s): the discretization is unstable at this dt and mesh "
+                                 "(try a larger dt or a finer mesh)", "growing")
+            previous, current = current, 0.0
+        self._window = (length, current, previous, growing)
+
     def _check_state(self) -> None:
         f = self._frame
         for quantity, value in (("displacement", self._u), ("frame position", f.T), ("frame velocity", f.velocity),
@@ -413,6 +443,10 @@ class BemBody(Body):
                 self._failure = (quantity, f"step {self.steps} (t = {self.time:.6g} s)", "non-finite")
                 return
         peak = float(np.max(np.abs(self._u))) if self._u.size else 0.0
+        if self._loaded_now:
+            self._last_loaded = self.steps
+        if self.growth_check:
+            self._check_growth(peak)
         if peak > self.divergence_limit:
             self._failure = ("displacement", f"|u| = {peak:.3g} m exceeds divergence_limit = "
                              f"{self.divergence_limit:.3g} m at step {self.steps} (t = {self.time:.6g} s)", "diverging")
