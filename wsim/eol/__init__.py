@@ -1,0 +1,15 @@
+"""Eulerian-on-Lagrangian solids (Fan, Litven, Levin, Pai): grid, Lagrangian coordinates, momentum split.
+
+This package is being built up (issue 7). Available now: the intermediate-domain grid and its
+material quadrature (``grid``), the rigid and affine Lagrangian coordinates with the mass blocks
+of Eq. (11) (``lagrangian``), and the least-squares momentum split of Eqs. (23-25) (``split``).
+"""
+
+from wsim.eol.grid import EolGrid, MaterialSamples, lumped_masses, make_grid, material_samples
+from wsim.eol.lagrangian import KINDS, MassBlocks, consistent_blocks, lagrangian_jacobian, mass_blocks
+from wsim.eol.split import momentum_split
+
+__all__ = [
+    "EolGrid", "MaterialSamples", "MassBlocks", "KINDS", "consistent_blocks", "lagrangian_jacobian",
+    "lumped_masses", "make_grid", "mass_blocks", "material_samples", "momentum_split",
+]
