@@ -119,3 +119,67 @@ def test_bad_grid_resolution():
     for bad in (3, 0, 2.5, True):
         with pytest.raises(wsim.InvalidParameter, match="resolution"):
             make_grid(m.vertices, bad)
+
+
+# -- elastic forces from the reference map (spec T13) ----------------------------------------
+def elastic_setup(device):
+    from wsim.eol.elastic import quadrature_points
+
+    m, grid, samples, masses, _ = setup(6)
+    points = quadrature_points(grid, samples.points, samples.weights, device)
+    return grid, samples, masses, points
+
+
+MATERIAL = wsim.ElasticMaterial(E=1e5, nu=0.3, rho=RHO)
+
+
+def test_rigidly_rotated_reference_map_has_no_force(device):
+    from wsim.eol.elastic import elastic_forces
+    from wsim.bem.frame import rodrigues
+
+    grid, samples, masses, points = elastic_setup(device)
+    y = grid.node_positions()
+    R = rodrigues(np.array([0.4, -1.1, 0.7]))
+    f_rot, e_rot = elastic_forces(grid, (y - 0.1) @ R + 0.1, points, MATERIAL, device)  # z = R^T (y - c) + c
+    f_str, _ = elastic_forces(grid, y / 1.05, points, MATERIAL, device)
+    assert np.abs(f_rot).max() < 1e-9 * np.abs(f_str).max()
+    assert abs(e_rot) < 1e-12
+
+
+def test_uniform_stretch_patch_test(device):
+    from wsim.eol.elastic import elastic_forces
+
+    grid, samples, masses, points = elastic_setup(device)
+    y = grid.node_positions()
+    lam_s = 1.05
+    f, energy = elastic_forces(grid, y / lam_s, points, MATERIAL, device)  # F = lam_s I
+    # energy: int_y W(F) det G dy with det G = lam_s^-3
+    mu, lam = MATERIAL.mu, MATERIAL.lam
+    logJ = 3.0 * np.log(lam_s)
+    W = 0.5 * mu * (3 * lam_s**2 - 3) - mu * logJ + 0.5 * lam * logJ**2
+    assert energy == pytest.approx(samples.volume * W / lam_s**3, rel=1e-10)
+    # interior nodes (every surrounding cell full): zero net force; whole body: no net force or torque
+    counts = np.zeros(grid.n_nodes)
+    np.add.at(counts, samples.nodes.ravel(), 1.0)
+    interior = counts == counts.max()
+    assert interior.sum() > 0
+    assert np.abs(f[interior]).max() < 1e-9 * np.abs(f).max()
+    assert np.abs(f.sum(axis=0)).max() < 1e-9 * np.abs(f).max()
+    assert np.abs(np.cross(y, f).sum(axis=0)).max() < 1e-9 * np.abs(f).max() * np.abs(y).max()
+
+
+def test_forces_are_minus_the_energy_gradient(device, rng):
+    from wsim.eol.elastic import elastic_forces
+
+    grid, samples, masses, points = elastic_setup(device)
+    y = grid.node_positions()
+    z = y - 0.01 * np.sin(3.0 * y[:, [1, 2, 0]]) - 0.004 * rng.standard_normal(y.shape) * (masses > 0)[:, None]
+    f, _ = elastic_forces(grid, z, points, MATERIAL, device)
+    node = int(np.flatnonzero(masses > 0)[len(np.flatnonzero(masses > 0)) // 2])
+    eps = 1e-7
+    for axis in range(3):
+        zp, zm = z.copy(), z.copy()
+        zp[node, axis] += eps
+        zm[node, axis] -= eps
+        dV = (elastic_forces(grid, zp, points, MATERIAL, device)[1] - elastic_forces(grid, zm, points, MATERIAL, device)[1]) / (2 * eps)
+        assert f[node, axis] == pytest.approx(dV, rel=1e-5, abs=1e-9 * np.abs(f).max())  # f = -dV/du = dV/dz
