@@ -241,3 +241,39 @@ def test_bad_advection_scheme():
     grid = make_grid(body().vertices, 4)
     with pytest.raises(wsim.InvalidParameter, match="advection"):
         advect(grid, grid.node_positions(), np.zeros((grid.n_nodes, 3)), 0.1, "maccormack", "cpu")
+
+
+# -- adaptive time step (Eqs. 30-33, spec T9) -------------------------------------------------
+def test_adaptive_dt_root_satisfies_the_cfl_rule(rng):
+    from wsim.eol.timestep import adaptive_dt, cfl_gamma
+
+    h = np.array([0.02, 0.03, 0.025])
+    alpha = 0.5
+    for _ in range(20):
+        v0, v1 = rng.standard_normal((50, 3)), 30.0 * rng.standard_normal((50, 3))
+        dt = adaptive_dt(v0, v1, h, alpha, dt_max=1.0)
+        gamma = cfl_gamma(v0 + dt * v1, h)
+        assert dt * gamma <= alpha * (1 + 1e-12)  # Eq. (33) with its sum: Eq. (30) holds a fortiori
+        # and it is the largest such step: gamma_i enter linearly, so equality holds when the
+        # per-axis maxima of v0 and v1 sit on the same node; always dt * max-rule <= alpha
+        v = np.abs(v0 + dt * v1)
+        assert dt * np.max(v / h) <= alpha + 1e-12
+    same = np.tile([1.0, 0.0, 0.0], (4, 1))
+    dt = adaptive_dt(same, 2.0 * same, h, alpha, dt_max=1.0)
+    assert dt * (1.0 + 2.0 * dt) / h[0] == pytest.approx(alpha, rel=1e-12)
+
+
+def test_adaptive_dt_limits():
+    from wsim.eol.timestep import adaptive_dt, elastic_dt_limit
+
+    z = np.zeros((5, 3))
+    v = np.tile([2.0, 0.0, 0.0], (5, 1))
+    assert adaptive_dt(z, z, 0.1, 0.5, dt_max=1 / 30) == 1 / 30  # v* = 0: the cap (frame time)
+    assert adaptive_dt(v, z, 0.1, 0.5, dt_max=1.0) == pytest.approx(0.5 * 0.1 / 2.0)  # gamma_1 = 0: alpha / gamma_0
+    for bad in (0.0, 1.0, -0.2):
+        with pytest.raises(wsim.InvalidParameter, match="cfl"):
+            adaptive_dt(v, z, 0.1, bad, dt_max=1.0)
+    mat = wsim.ElasticMaterial(E=1e5, nu=0.3, rho=1000.0)
+    assert elastic_dt_limit(0.01, mat) == pytest.approx(0.5 * 0.01 / mat.c1)
+    with pytest.raises(wsim.InvalidParameter, match="compressible"):
+        elastic_dt_limit(0.01, wsim.ElasticMaterial(E=1e5, nu=0.5, rho=1000.0, incompressible=True))

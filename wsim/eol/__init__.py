@@ -4,7 +4,8 @@ This package is being built up (issue 7). Available now: the intermediate-domain
 material quadrature (``grid``), the rigid and affine Lagrangian coordinates with the mass blocks
 of Eq. (11) (``lagrangian``), the least-squares momentum split of Eqs. (23-25) (``split``), and
 Neo-Hookean elastic forces from the reference map on the grid (``elastic``), and semi-Lagrangian
-or BFECC advection of nodal fields (``advection``), both Warp kernels.
+or BFECC advection of nodal fields (``advection``), both Warp kernels, and the adaptive time step
+of Eqs. (30-33) (``timestep``).
 """
 
 from wsim.eol.grid import EolGrid, MaterialSamples, lumped_masses, make_grid, material_samples
