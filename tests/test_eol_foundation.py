@@ -277,3 +277,36 @@ def test_adaptive_dt_limits():
     assert elastic_dt_limit(0.01, mat) == pytest.approx(0.5 * 0.01 / mat.c1)
     with pytest.raises(wsim.InvalidParameter, match="compressible"):
         elastic_dt_limit(0.01, wsim.ElasticMaterial(E=1e5, nu=0.5, rho=1000.0, incompressible=True))
+
+
+# -- surface tracking (Algorithm 2, spec T12) -------------------------------------------------
+def test_surface_tracking(device, rng):
+    from wsim.eol.tracking import track_surface
+    from wsim.bem.frame import rodrigues
+
+    m = body("sphere")
+    grid = make_grid(m.vertices, 12, padding=3)
+    y = grid.node_positions()
+    zv = m.vertices
+    # no displacement: every vertex is exactly where it was, with no iteration
+    out, iters = track_surface(grid, y, zv, zv, device=device)
+    np.testing.assert_array_equal(out, zv)
+    assert iters.max() == 0
+    # an affine reference map z = A^-1 (y - b): one Newton step from the rest guess
+    A = rodrigues(np.array([0.1, 0.2, -0.1])) @ np.diag([1.05, 0.97, 1.02])
+    b = np.array([0.01, -0.02, 0.015])
+    out, iters = track_surface(grid, (y - b) @ np.linalg.inv(A).T, zv, zv, device=device)
+    np.testing.assert_allclose(out, zv @ A.T + b, atol=1e-12)
+    assert iters.max() == 1
+    # a smooth nonlinear map: converges to the tolerance in a few (Newton) iterations
+    def phi_inv(q):  # z(y): a small smooth wobble
+        return q - 0.01 * np.sin(4.0 * q[:, [1, 2, 0]])
+
+    out, iters = track_surface(grid, phi_inv(y), zv, zv, tol=1e-10, device=device)
+    # the trilinear field is the one being inverted: the residual through it is below the tolerance
+    nodes, phi = grid.shape_functions(out)
+    z_at = np.einsum("pc,pci->pi", phi, phi_inv(y)[nodes])
+    assert np.linalg.norm(z_at - zv, axis=1).max() < 1e-10
+    assert 1 <= iters.min() and iters.max() <= 6
+    assert np.abs(out - zv).max() > 1e-3  # it moved
+    assert np.abs(phi_inv(out) - zv).max() < 0.05 * np.abs(out - zv).max()  # near the smooth inverse (h^2 error)

@@ -5,7 +5,7 @@ material quadrature (``grid``), the rigid and affine Lagrangian coordinates with
 of Eq. (11) (``lagrangian``), the least-squares momentum split of Eqs. (23-25) (``split``), and
 Neo-Hookean elastic forces from the reference map on the grid (``elastic``), and semi-Lagrangian
 or BFECC advection of nodal fields (``advection``), both Warp kernels, and the adaptive time step
-of Eqs. (30-33) (``timestep``).
+of Eqs. (30-33) (``timestep``), and surface tracking by Algorithm 2 (``tracking``, a Warp kernel).
 """
 
 from wsim.eol.grid import EolGrid, MaterialSamples, lumped_masses, make_grid, material_samples

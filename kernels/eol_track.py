@@ -1,0 +1,57 @@
+"""Warp kernel of EoL surface tracking (Fan et al. Sec. 3.8, Algorithm 2).
+
+The surface mesh lives in the material domain z. Each step, each vertex's intermediate position y
+is found from the advected material-coordinate field z(y) (trilinear on the grid): solve
+z(y) = z_v by Newton's method, p <- p + F e with e = z_v - z(p) and F = (grad_y z)^-1 (the
+Eulerian deformation gradient), starting from the previous step's y. Zero displacement (z = y)
+returns every vertex exactly to its rest position; an affine field converges in one iteration.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from wsim.kernels.eol_advect import sample_trilinear
+from wsim.kernels.eol_elastic import corner_gradient
+
+
+@wp.func
+def map_gradient(q: wp.array3d(dtype=wp.vec3d), p: wp.vec3d, origin: wp.vec3d, h: wp.float64) -> wp.mat33d:
+    """grad_y z of the trilinear field q at p (the cell containing p, clamped to the grid)."""
+    nx = q.shape[0] - 1
+    ny = q.shape[1] - 1
+    nz = q.shape[2] - 1
+    g = (p - origin) / h
+    i = wp.clamp(int(wp.floor(g[0])), 0, nx - 1)
+    j = wp.clamp(int(wp.floor(g[1])), 0, ny - 1)
+    k = wp.clamp(int(wp.floor(g[2])), 0, nz - 1)
+    t = wp.vec3d(g[0] - wp.float64(i), g[1] - wp.float64(j), g[2] - wp.float64(k))
+    G = wp.mat33d()
+    for c in range(8):
+        G += wp.outer(q[i + c // 4, j + (c // 2) % 2, k + c % 2], corner_gradient(c, t, h))
+    return G
+
+
+@wp.kernel
+def track_surface(
+    z_field: wp.array3d(dtype=wp.vec3d),
+    origin: wp.vec3d,
+    h: wp.float64,
+    z_vertex: wp.array(dtype=wp.vec3d),
+    guess: wp.array(dtype=wp.vec3d),
+    tol: wp.float64,
+    max_iter: int,
+    y_vertex: wp.array(dtype=wp.vec3d),
+    iterations: wp.array(dtype=wp.int32),
+):
+    """Algorithm 2 for one vertex per thread: y with z(y) = z_v to |e| < tol (or max_iter steps)."""
+    v = wp.tid()
+    p = guess[v]
+    n = int(0)
+    e = z_vertex[v] - sample_trilinear(z_field, p, origin, h)
+    while wp.length(e) >= tol and n < max_iter:
+        p = p + wp.inverse(map_gradient(z_field, p, origin, h)) * e
+        e = z_vertex[v] - sample_trilinear(z_field, p, origin, h)
+        n += 1
+    y_vertex[v] = p
+    iterations[v] = wp.int32(n)
