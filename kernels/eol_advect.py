@@ -11,31 +11,7 @@ from __future__ import annotations
 
 import warp as wp
 
-
-@wp.func
-def sample_trilinear(q: wp.array3d(dtype=wp.vec3d), p: wp.vec3d, origin: wp.vec3d, h: wp.float64) -> wp.vec3d:
-    """q at point p (trilinear; p clamped into the grid box)."""
-    nx = q.shape[0] - 1
-    ny = q.shape[1] - 1
-    nz = q.shape[2] - 1
-    g = (p - origin) / h
-    gx = wp.clamp(g[0], wp.float64(0.0), wp.float64(nx))
-    gy = wp.clamp(g[1], wp.float64(0.0), wp.float64(ny))
-    gz = wp.clamp(g[2], wp.float64(0.0), wp.float64(nz))
-    i = wp.min(int(gx), nx - 1)
-    j = wp.min(int(gy), ny - 1)
-    k = wp.min(int(gz), nz - 1)
-    tx = gx - wp.float64(i)
-    ty = gy - wp.float64(j)
-    tz = gz - wp.float64(k)
-    one = wp.float64(1.0)
-    c00 = q[i, j, k] * (one - tx) + q[i + 1, j, k] * tx
-    c10 = q[i, j + 1, k] * (one - tx) + q[i + 1, j + 1, k] * tx
-    c01 = q[i, j, k + 1] * (one - tx) + q[i + 1, j, k + 1] * tx
-    c11 = q[i, j + 1, k + 1] * (one - tx) + q[i + 1, j + 1, k + 1] * tx
-    c0 = c00 * (one - ty) + c10 * ty
-    c1 = c01 * (one - ty) + c11 * ty
-    return c0 * (one - tz) + c1 * tz
+from wsim.kernels.eol_grid import sample_trilinear
 
 
 @wp.kernel

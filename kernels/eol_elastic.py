@@ -18,21 +18,7 @@ from __future__ import annotations
 
 import warp as wp
 
-
-@wp.func
-def corner_gradient(c: int, t: wp.vec3d, h: wp.float64) -> wp.vec3d:
-    """grad Phi of cell corner c = 4 i + 2 j + k at local coordinates t in [0, 1]^3."""
-    i = c // 4
-    j = (c // 2) % 2
-    k = c % 2
-    one = wp.float64(1.0)
-    wx = wp.where(i == 1, t[0], one - t[0])
-    wy = wp.where(j == 1, t[1], one - t[1])
-    wz = wp.where(k == 1, t[2], one - t[2])
-    dx = wp.where(i == 1, one, -one)
-    dy = wp.where(j == 1, one, -one)
-    dz = wp.where(k == 1, one, -one)
-    return wp.vec3d(dx * wy * wz, wx * dy * wz, wx * wy * dz) / h
+from wsim.kernels.eol_grid import corner_gradient
 
 
 @wp.kernel

@@ -11,25 +11,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from wsim.kernels.eol_advect import sample_trilinear
-from wsim.kernels.eol_elastic import corner_gradient
-
-
-@wp.func
-def map_gradient(q: wp.array3d(dtype=wp.vec3d), p: wp.vec3d, origin: wp.vec3d, h: wp.float64) -> wp.mat33d:
-    """grad_y z of the trilinear field q at p (the cell containing p, clamped to the grid)."""
-    nx = q.shape[0] - 1
-    ny = q.shape[1] - 1
-    nz = q.shape[2] - 1
-    g = (p - origin) / h
-    i = wp.clamp(int(wp.floor(g[0])), 0, nx - 1)
-    j = wp.clamp(int(wp.floor(g[1])), 0, ny - 1)
-    k = wp.clamp(int(wp.floor(g[2])), 0, nz - 1)
-    t = wp.vec3d(g[0] - wp.float64(i), g[1] - wp.float64(j), g[2] - wp.float64(k))
-    G = wp.mat33d()
-    for c in range(8):
-        G += wp.outer(q[i + c // 4, j + (c // 2) % 2, k + c % 2], corner_gradient(c, t, h))
-    return G
+from wsim.kernels.eol_grid import sample_gradient, sample_trilinear
 
 
 @wp.kernel
@@ -50,7 +32,7 @@ def track_surface(
     n = int(0)
     e = z_vertex[v] - sample_trilinear(z_field, p, origin, h)
     while wp.length(e) >= tol and n < max_iter:
-        p = p + wp.inverse(map_gradient(z_field, p, origin, h)) * e
+        p = p + wp.inverse(sample_gradient(z_field, p, origin, h)) * e
         e = z_vertex[v] - sample_trilinear(z_field, p, origin, h)
         n += 1
     y_vertex[v] = p

@@ -254,6 +254,15 @@ def face_areas(vertices: Any, faces: Any) -> np.ndarray:
     return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
 
 
+def vertex_normals(vertices: Any, faces: Any) -> np.ndarray:
+    """(V, 3) unit area-weighted vertex normals (the sum of the adjacent faces' area vectors)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces)
+    a, b, c = _corners(v, f)
+    n = _scatter_add_rows(f.reshape(-1), np.repeat(np.cross(b - a, c - a), 3, axis=0), v.shape[0])
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
 def vertex_areas(vertices: Any, faces: Any) -> np.ndarray:
     """Lumped area [m^2] of each vertex: one third of the area of every incident face, shape (N,)."""
     n = np.asarray(vertices).shape[0]
@@ -811,10 +820,7 @@ def bumpy_cube(size: float = 1.0, divisions: int = 8, amplitude: float = 0.05, s
 
     half = 0.5 * size
     v, f = _box_surface(np.full(3, -half), np.full(3, half), (divisions,) * 3)
-    a, b, c = _corners(v, f)
-    area_normals = np.cross(b - a, c - a)
-    normals = _scatter_add_rows(f.reshape(-1), np.repeat(area_normals, 3, axis=0), v.shape[0])
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    normals = vertex_normals(v, f)
     field = (np.cos((v @ dirs.T) * wavenumbers + phases) * weights).sum(axis=1)
     v = v + (amplitude * size * field)[:, None] * normals
     return _finish(v, f, "bumpy_cube")

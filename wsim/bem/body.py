@@ -179,12 +179,7 @@ class BemBody(Body):
     @property
     def rest_normals(self) -> np.ndarray:
         """(V, 3) unit area-weighted vertex normals of the rest mesh (frame coordinates)."""
-        v, f = self._mesh
-        fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # |fn| = 2 area
-        n = np.zeros_like(v)
-        for k in range(3):
-            np.add.at(n, f[:, k], fn)
-        return n / np.linalg.norm(n, axis=1, keepdims=True)
+        return wmesh.vertex_normals(*self._mesh)
 
     @property
     def mass(self) -> float:
@@ -306,7 +301,7 @@ class BemBody(Body):
         rigid motion at constant velocity is traction-free)."""
         f = self._frame
         v_b, w_b = f.R.T @ f.velocity, f.R.T @ f.omega
-        x = self._so.correction.x
+        x = self._so.operators.surface.nodes - self._so.operators.com
         rigid = (v_b + np.cross(w_b, x)).reshape(-1)
         U = np.zeros((self._so.n_max, self._so.pitch))
         for k in range(1, self._so.n_max + 1):
@@ -397,7 +392,7 @@ class BemBody(Body):
         else:
             # a = alpha = 0 in Eq. (9): H_0 u = G_0 p - D_0 g' + h
             b = np.concatenate([-g_body, np.zeros(3)])
-            u = u + so.correction.E @ np.concatenate([-(a_ext + g_body), -alpha_ext])
+            u = u + so.E @ np.concatenate([-(a_ext + g_body), -alpha_ext])
         t0 = self._tick("correction", t0)
         slot = self._step % so.n_max
         self._u_in.numpy()[:n3] = u

@@ -76,7 +76,8 @@ class Correction:
         object.__setattr__(self, "w_sum", float(self.w.sum()))
 
     @classmethod
-    def from_operators(cls, ops) -> Correction:
+    def from_operators(cls, ops, E: np.ndarray) -> Correction:
+        """The pieces for ``ops``; E = [H_0^-1 D_0, H_0^-1 Q_0] as the step already holds it."""
         n = ops.n_nodes
         x = ops.surface.nodes - ops.com
         w = volume_weights(ops.surface, ops.com)
@@ -88,7 +89,6 @@ class Correction:
         P_Q_H0 = np.empty((3, 3 * n))
         for c in range(0, 3 * n, _CHUNK):
             P_Q_H0[:, c : c + _CHUNK] = P_Q @ np.asarray(H0[:, c : c + _CHUNK], dtype=np.float64)
-        E = ops.solve_H0(np.hstack([D0, Q0]))
         return cls(x=x, w=w, c0=(w @ x) / w.sum(), H0_T=H0_T, K_a=K_a, P_Q=P_Q, P_Q_H0=P_Q_H0, D0=D0, E=E)
 
     def apply(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

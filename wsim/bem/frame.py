@@ -22,15 +22,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from wsim.bem.fundamental import cross_matrix
+
 
 def rodrigues(phi: np.ndarray) -> np.ndarray:
     """exp([phi]x): rotation by |phi| about phi / |phi| (Rodrigues' formula)."""
+    phi = np.asarray(phi, dtype=np.float64)
     angle = float(np.linalg.norm(phi))
     if angle < 1e-12:
-        k = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
-        return np.eye(3) + k
-    axis = phi / angle
-    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+        return np.eye(3) + cross_matrix(phi)
+    k = cross_matrix(phi / angle)
     return np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * (k @ k)
 
 

@@ -2,8 +2,8 @@
 
 ``StepOperators`` holds, on one Warp device, what every step reads: H_k, G_k (k = 1..n_max),
 the (3N, 6) blocks [D_k Q_k], H_0^-1 and H_0^-1 G' (paper Eq. 12) in the storage precision, plus
-the error-correction pieces (``wsim.bem.correction``). It is immutable and shared by every body
-built on the same operator set, device and backend.
+H_0^-1 [D_0 Q_0] and, built on first use, the error-correction pieces (``wsim.bem.correction``).
+It is immutable and shared by every body built on the same operator set, device and backend.
 
 Two backends compute the passes (``history`` and ``solve``):
 
@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import weakref
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -51,8 +52,13 @@ class StepOperators:
     DQ: wp.array  # (n_max, 3N, 6)
     H0_inv: wp.array  # (3N, pitch)
     H0_inv_Gp: wp.array
-    correction: Correction
+    E: np.ndarray  # (3N, 6) [H_0^-1 D_0, H_0^-1 Q_0], float64: re-solves for changed a, alpha
     vec4: dict[str, wp.array]  # Warp backend: vec4 views of H, G, H0_inv, H0_inv_Gp
+
+    @cached_property
+    def correction(self) -> Correction:
+        """Error-correction pieces, built on first use (bodies without the correction never pay)."""
+        return Correction.from_operators(self.operators, self.E)
 
     @property
     def n_max(self) -> int:
@@ -128,7 +134,7 @@ def step_operators(ops: BemOperators, device: wp.Device, backend: str) -> StepOp
             "H0_inv_Gp": upload(ops.H0_inv_Gp)}
     out = StepOperators(
         operators=ops, device=device, backend=backend, dtype=wdt, pitch=pitch, DQ=wp.array(dq, dtype=wdt, device=device),
-        correction=Correction.from_operators(ops), vec4={k: vec4_view(v) for k, v in mats.items()} if backend == "warp" else {},
+        E=ops.solve_H0(np.hstack([ops.D[0], ops.Q[0]])), vec4={k: vec4_view(v) for k, v in mats.items()} if backend == "warp" else {},
         **mats,
     )
     _SHARED[key] = out

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from wsim.eol.grid import CORNERS, EolGrid
+from wsim.eol.grid import EolGrid
 from wsim.kernels import eol_elastic as ke
 from wsim.materials import ElasticMaterial
 
@@ -23,9 +23,8 @@ class QuadraturePoints:
 
 def quadrature_points(grid: EolGrid, y: np.ndarray, weights: np.ndarray, device) -> QuadraturePoints:
     """Upload points y (P, 3) with volumes (P,) as the kernel's quadrature."""
-    cell, local = grid.locate(y)
-    nodes = grid.node_index(cell[:, None, :] + CORNERS[None, :, :]).astype(np.int32)
-    return QuadraturePoints(nodes=wp.array(nodes, dtype=wp.int32, device=device),
+    nodes, local = grid.cell_nodes(y)
+    return QuadraturePoints(nodes=wp.array(nodes.astype(np.int32), dtype=wp.int32, device=device),
                             local=wp.array(local, dtype=wp.vec3d, device=device),
                             weight=wp.array(np.asarray(weights, dtype=np.float64), dtype=wp.float64, device=device))
 

@@ -53,10 +53,15 @@ class EolGrid:
         cell = np.clip(np.floor(g).astype(np.int64), 0, np.array(self.cells) - 1)
         return cell, g - cell
 
+    def cell_nodes(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The 8 corner nodes (P, 8) of the cell holding each point y (P, 3), in ``CORNERS`` order,
+        and the local coordinates (P, 3)."""
+        cell, t = self.locate(y)
+        return self.node_index(cell[:, None, :] + CORNERS[None, :, :]), t
+
     def shape_functions(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Trilinear Phi at points y: (P, 8) node indices and (P, 8) weights (a partition of unity)."""
-        cell, t = self.locate(y)
-        nodes = self.node_index(cell[:, None, :] + CORNERS[None, :, :])
+        nodes, t = self.cell_nodes(y)
         w = np.ones((len(t), 8))
         for axis in range(3):
             w *= np.where(CORNERS[None, :, axis] == 1, t[:, None, axis], 1.0 - t[:, None, axis])

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from wsim.bem.fundamental import cross_matrix
 from wsim.eol.grid import EolGrid, MaterialSamples
 
 KINDS = {"rigid": 6, "affine": 12}
@@ -37,12 +38,8 @@ def lagrangian_jacobian(kind: str, y: np.ndarray) -> np.ndarray:
     y = np.atleast_2d(np.asarray(y, dtype=np.float64))
     P = len(y)
     eye = np.broadcast_to(np.eye(3), (P, 3, 3))
-    if kind == "rigid":
-        cross_t = np.zeros((P, 3, 3))  # [y]^T = -[y]: [y]^T omega = omega x y
-        cross_t[:, 0, 1], cross_t[:, 0, 2] = y[:, 2], -y[:, 1]
-        cross_t[:, 1, 0], cross_t[:, 1, 2] = -y[:, 2], y[:, 0]
-        cross_t[:, 2, 0], cross_t[:, 2, 1] = y[:, 1], -y[:, 0]
-        return np.concatenate([cross_t, eye], axis=2)
+    if kind == "rigid":  # [y]^T = -[y]: [y]^T omega = omega x y
+        return np.concatenate([-cross_matrix(y), eye], axis=2)
     if kind == "affine":
         return np.concatenate([y[:, 0, None, None] * eye, y[:, 1, None, None] * eye, y[:, 2, None, None] * eye, eye],
                               axis=2)
