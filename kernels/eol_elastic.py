@@ -1,16 +1,24 @@
-"""Warp kernel of EoL elastic forces from the reference map (Fan et al. Sec. 3.3; Levin et al. 2011).
+"""Warp kernel of EoL elastic forces and lumped masses from material quadrature points.
 
-The grid stores material coordinates z_s at its nodes (z = y - u). At a quadrature point y in the
-intermediate domain G = grad_y z = sum_s z_s grad Phi_s(y)^T, and the deformation gradient is
-F = G^-1. The elastic energy of the material is V = int_z W(F) dz = int_y W(F) det(G) dy, so per
-point (weight w, intermediate volume)
+The body is integrated at material quadrature points i (material volume w_i, fixed in z, found in
+the intermediate domain at y_i by Algorithm 2 each step). At y_i the reference map gives
+G = grad_y z, the Eulerian deformation gradient F_2 = G^-1 and, with the Lagrangian deformation
+gradient F_L (I in the rigid frame's axes; A for affine coordinates, Eq. 9), the total
+F = F_L G^-1; with plasticity (Eq. 34) the elastic part is F_e = F F_p^-1, F_p^-1 stored per
+material point (Sec. 3.7: in the material domain).
 
-    dV/dG = w det(G) (W F^T - F^T P F^T)      (P = dW/dF; dF = -F dG F, d det G = det G G^-T : dG)
-    f_s  = -dV/du_s = +dV/dz_s = (dV/dG) grad Phi_s(y)
+Forces are the weak form of the momentum balance on a trilinear velocity field w(y) = sum_s
+w_s Phi_s(y) (w the material's velocity in F_L's axes): the elastic power is
+int_z P(F_e) : grad_z w F_p^-1 dz with grad_z w = grad_y w G^-1, so
 
-Constitutive law: compressible Neo-Hookean, W = mu/2 (tr F^T F - 3) - mu ln J + lam/2 (ln J)^2,
-P = mu (F - F^-T) + lam ln J F^-T: zero energy and stress for any rotation, so rigid motion of
-the reference map costs nothing. Float64 throughout: G is a difference of nearby absolute
+    g_s = - sum_i w_i P(F_e) F_p^-T G^-T grad Phi_s(y_i)         (Cauchy stress form)
+    m_s = sum_i rho w_i Phi_s(y_i)                                (lumped mass, paper: M_2 diagonal)
+
+Affine velocities are reproduced exactly by trilinear nodes, so sum_s g_s (y_s, 1)^T is exactly
+-dV/d(A, b): the forces on the Lagrangian coordinates are consistent with the nodal ones (what the
+redundancy of Eq. 18-22 requires). Constitutive law: compressible Neo-Hookean,
+W = mu/2 (tr F^T F - 3) - mu ln J + lam/2 (ln J)^2, P = mu (F - F^-T) + lam ln J F^-T: zero
+energy and stress for any rotation. Float64 throughout: G is a difference of nearby absolute
 coordinates (z_s - z_t ~ h), where float32 would lose the strain to cancellation.
 """
 
@@ -18,37 +26,62 @@ from __future__ import annotations
 
 import warp as wp
 
-from wsim.kernels.eol_grid import corner_gradient
+from wsim.kernels.eol_grid import cell_of, corner_gradient, corner_weight, gradient_in_cell, grid_coordinates, local_coordinates
+
+# below this det F_e the element is treated as (nearly) inverted: ln J is evaluated at the floor
+J_FLOOR = 1.0e-6
+
+
+@wp.func
+def neo_hookean(F: wp.mat33d, mu: wp.float64, lam: wp.float64) -> wp.mat33d:
+    """First Piola-Kirchhoff stress P(F) of compressible Neo-Hookean."""
+    J = wp.max(wp.determinant(F), wp.float64(J_FLOOR))
+    F_invT = wp.transpose(wp.inverse(F))
+    return mu * (F - F_invT) + lam * wp.log(J) * F_invT
+
+
+@wp.func
+def neo_hookean_energy(F: wp.mat33d, mu: wp.float64, lam: wp.float64) -> wp.float64:
+    """Energy density W(F) of compressible Neo-Hookean [J/m^3]."""
+    logJ = wp.log(wp.max(wp.determinant(F), wp.float64(J_FLOOR)))
+    half = wp.float64(0.5)
+    return half * mu * (wp.ddot(F, F) - wp.float64(3.0)) - mu * logJ + half * lam * logJ * logJ
 
 
 @wp.kernel
-def neo_hookean_forces(
-    z: wp.array(dtype=wp.vec3d),
-    point_nodes: wp.array2d(dtype=wp.int32),
-    point_local: wp.array(dtype=wp.vec3d),
-    point_weight: wp.array(dtype=wp.float64),
+def sample_forces(
+    z: wp.array3d(dtype=wp.vec3d),
+    origin: wp.vec3d,
     h: wp.float64,
+    y: wp.array(dtype=wp.vec3d),
+    volume: wp.array(dtype=wp.float64),
+    Fp_inv: wp.array(dtype=wp.mat33d),
+    plastic: int,
+    F_L: wp.mat33d,
     mu: wp.float64,
     lam: wp.float64,
-    forces: wp.array(dtype=wp.vec3d),
+    rho: wp.float64,
+    forces: wp.array3d(dtype=wp.vec3d),
+    mass: wp.array3d(dtype=wp.float64),
     energy: wp.array(dtype=wp.float64),
 ):
-    """One thread per quadrature point: add f_s = (dV/dG) grad Phi_s to its 8 nodes and W det G w to energy."""
-    q = wp.tid()
-    t = point_local[q]
-    G = wp.mat33d()
+    """One thread per material point: scatter g_s and m_s to its cell's 8 nodes, add w W to energy."""
+    i = wp.tid()
+    g = grid_coordinates(z, y[i], origin, h)
+    cell = cell_of(z, g)
+    t = local_coordinates(g, cell)
+    G_inv = wp.inverse(gradient_in_cell(z, cell, t, h))
+    F = F_L * G_inv
+    S = wp.identity(n=3, dtype=wp.float64)
+    if plastic != 0:
+        S = Fp_inv[i]
+    Fe = F * S
+    P = neo_hookean(Fe, mu, lam)
+    stress = volume[i] * P * wp.transpose(S) * wp.transpose(G_inv)
     for c in range(8):
-        G += wp.outer(z[point_nodes[q, c]], corner_gradient(c, t, h))
-    detG = wp.determinant(G)
-    F = wp.inverse(G)
-    J = wp.float64(1.0) / detG
-    F_invT = wp.transpose(G)  # F^-T = G^T
-    logJ = wp.log(J)
-    half = wp.float64(0.5)
-    W = half * mu * (wp.ddot(F, F) - wp.float64(3.0)) - mu * logJ + half * lam * logJ * logJ
-    P = mu * (F - F_invT) + lam * logJ * F_invT
-    Ft = wp.transpose(F)
-    dVdG = point_weight[q] * detG * (W * Ft - Ft * P * Ft)
-    for c in range(8):
-        wp.atomic_add(forces, point_nodes[q, c], dVdG * corner_gradient(c, t, h))
-    wp.atomic_add(energy, 0, point_weight[q] * detG * W)
+        a = cell[0] + c // 4
+        b = cell[1] + (c // 2) % 2
+        d = cell[2] + c % 2
+        wp.atomic_add(forces, a, b, d, -(stress * corner_gradient(c, t, h)))
+        wp.atomic_add(mass, a, b, d, rho * volume[i] * corner_weight(c, t))
+    wp.atomic_add(energy, 0, volume[i] * neo_hookean_energy(Fe, mu, lam))

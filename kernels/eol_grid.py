@@ -58,11 +58,17 @@ def corner_value(q: wp.array3d(dtype=wp.vec3d), cell: wp.vec3i, c: int) -> wp.ve
 
 
 @wp.func
+def local_coordinates(g: wp.vec3d, cell: wp.vec3i) -> wp.vec3d:
+    """Local coordinates in [0, 1]^3 of grid coordinates g inside ``cell``."""
+    return g - wp.vec3d(wp.float64(cell[0]), wp.float64(cell[1]), wp.float64(cell[2]))
+
+
+@wp.func
 def sample_trilinear(q: wp.array3d(dtype=wp.vec3d), p: wp.vec3d, origin: wp.vec3d, h: wp.float64) -> wp.vec3d:
     """q at point p (trilinear; p clamped into the grid box)."""
     g = grid_coordinates(q, p, origin, h)
     cell = cell_of(q, g)
-    t = g - wp.vec3d(wp.float64(cell[0]), wp.float64(cell[1]), wp.float64(cell[2]))
+    t = local_coordinates(g, cell)
     out = wp.vec3d()
     for c in range(8):
         out += corner_weight(c, t) * corner_value(q, cell, c)
@@ -70,12 +76,17 @@ def sample_trilinear(q: wp.array3d(dtype=wp.vec3d), p: wp.vec3d, origin: wp.vec3
 
 
 @wp.func
-def sample_gradient(q: wp.array3d(dtype=wp.vec3d), p: wp.vec3d, origin: wp.vec3d, h: wp.float64) -> wp.mat33d:
-    """grad_y q of the trilinear field at p (p clamped into the grid box, like ``sample_trilinear``)."""
-    g = grid_coordinates(q, p, origin, h)
-    cell = cell_of(q, g)
-    t = g - wp.vec3d(wp.float64(cell[0]), wp.float64(cell[1]), wp.float64(cell[2]))
+def gradient_in_cell(q: wp.array3d(dtype=wp.vec3d), cell: wp.vec3i, t: wp.vec3d, h: wp.float64) -> wp.mat33d:
+    """grad_y q of the trilinear field in ``cell`` at local coordinates t."""
     G = wp.mat33d()
     for c in range(8):
         G += wp.outer(corner_value(q, cell, c), corner_gradient(c, t, h))
     return G
+
+
+@wp.func
+def sample_gradient(q: wp.array3d(dtype=wp.vec3d), p: wp.vec3d, origin: wp.vec3d, h: wp.float64) -> wp.mat33d:
+    """grad_y q of the trilinear field at p (p clamped into the grid box, like ``sample_trilinear``)."""
+    g = grid_coordinates(q, p, origin, h)
+    cell = cell_of(q, g)
+    return gradient_in_cell(q, cell, local_coordinates(g, cell), h)

@@ -122,42 +122,45 @@ def test_bad_grid_resolution():
 
 
 # -- elastic forces from the reference map (spec T13) ----------------------------------------
-def elastic_setup(device):
-    from wsim.eol.elastic import quadrature_points
-
+def elastic_setup():
     m, grid, samples, masses, _ = setup(6)
-    points = quadrature_points(grid, samples.points, samples.weights, device)
-    return grid, samples, masses, points
+    return grid, samples, masses
 
 
 MATERIAL = wsim.ElasticMaterial(E=1e5, nu=0.3, rho=RHO)
 
 
-def test_rigidly_rotated_reference_map_has_no_force(device):
+def forces_of(grid, samples, z, device, **kw):
     from wsim.eol.elastic import elastic_forces
+
+    return elastic_forces(grid, z, samples.points, samples.weights, MATERIAL, device, **kw)
+
+
+def test_rigidly_rotated_reference_map_has_no_force(device):
     from wsim.bem.frame import rodrigues
 
-    grid, samples, masses, points = elastic_setup(device)
+    grid, samples, masses = elastic_setup()
     y = grid.node_positions()
     R = rodrigues(np.array([0.4, -1.1, 0.7]))
-    f_rot, e_rot = elastic_forces(grid, (y - 0.1) @ R + 0.1, points, MATERIAL, device)  # z = R^T (y - c) + c
-    f_str, _ = elastic_forces(grid, y / 1.05, points, MATERIAL, device)
+    f_rot, m_rot, e_rot = forces_of(grid, samples, (y - 0.1) @ R + 0.1, device)  # z = R^T (y - c) + c
+    f_str, _, _ = forces_of(grid, samples, y / 1.05, device)
     assert np.abs(f_rot).max() < 1e-9 * np.abs(f_str).max()
     assert abs(e_rot) < 1e-12
+    np.testing.assert_allclose(m_rot, masses, rtol=1e-12, atol=1e-15)  # lumped masses of the kernel
+    # a rotation in the Lagrangian part (F_L = R) costs nothing either
+    f_L, _, e_L = forces_of(grid, samples, y, device, F_L=R)
+    assert np.abs(f_L).max() < 1e-9 * np.abs(f_str).max() and abs(e_L) < 1e-12
 
 
 def test_uniform_stretch_patch_test(device):
-    from wsim.eol.elastic import elastic_forces
-
-    grid, samples, masses, points = elastic_setup(device)
+    grid, samples, masses = elastic_setup()
     y = grid.node_positions()
     lam_s = 1.05
-    f, energy = elastic_forces(grid, y / lam_s, points, MATERIAL, device)  # F = lam_s I
-    # energy: int_y W(F) det G dy with det G = lam_s^-3
+    f, _, energy = forces_of(grid, samples, y / lam_s, device)  # F = lam_s I
     mu, lam = MATERIAL.mu, MATERIAL.lam
     logJ = 3.0 * np.log(lam_s)
     W = 0.5 * mu * (3 * lam_s**2 - 3) - mu * logJ + 0.5 * lam * logJ**2
-    assert energy == pytest.approx(samples.volume * W / lam_s**3, rel=1e-10)
+    assert energy == pytest.approx(samples.volume * W, rel=1e-10)  # material volumes
     # interior nodes (every surrounding cell full): zero net force; whole body: no net force or torque
     counts = np.zeros(grid.n_nodes)
     np.add.at(counts, samples.nodes.ravel(), 1.0)
@@ -166,23 +169,31 @@ def test_uniform_stretch_patch_test(device):
     assert np.abs(f[interior]).max() < 1e-9 * np.abs(f).max()
     assert np.abs(f.sum(axis=0)).max() < 1e-9 * np.abs(f).max()
     assert np.abs(np.cross(y, f).sum(axis=0)).max() < 1e-9 * np.abs(f).max() * np.abs(y).max()
+    # the same stretch carried by the Lagrangian deformation gradient gives the same energy
+    _, _, e_L = forces_of(grid, samples, y, device, F_L=lam_s * np.eye(3))
+    assert e_L == pytest.approx(energy, rel=1e-10)
 
 
-def test_forces_are_minus_the_energy_gradient(device, rng):
-    from wsim.eol.elastic import elastic_forces
-
-    grid, samples, masses, points = elastic_setup(device)
+def test_forces_are_the_power_conjugate_of_affine_velocities(device, rng):
+    """sum_s g_s (y_s, 1)^T = -dV/d(A, b) exactly (trilinear nodes reproduce affine velocities):
+    what makes the Lagrangian forces consistent with the nodal ones (Eqs. 18-22)."""
+    grid, samples, masses = elastic_setup()
     y = grid.node_positions()
     z = y - 0.01 * np.sin(3.0 * y[:, [1, 2, 0]]) - 0.004 * rng.standard_normal(y.shape) * (masses > 0)[:, None]
-    f, _ = elastic_forces(grid, z, points, MATERIAL, device)
-    node = int(np.flatnonzero(masses > 0)[len(np.flatnonzero(masses > 0)) // 2])
-    eps = 1e-7
-    for axis in range(3):
-        zp, zm = z.copy(), z.copy()
-        zp[node, axis] += eps
-        zm[node, axis] -= eps
-        dV = (elastic_forces(grid, zp, points, MATERIAL, device)[1] - elastic_forces(grid, zm, points, MATERIAL, device)[1]) / (2 * eps)
-        assert f[node, axis] == pytest.approx(dV, rel=1e-5, abs=1e-9 * np.abs(f).max())  # f = -dV/du = dV/dz
+    A = np.eye(3) + 0.05 * rng.standard_normal((3, 3))
+    Fp_inv = np.eye(3) + 0.03 * rng.standard_normal((len(samples.weights), 3, 3))
+    for fp in (None, Fp_inv):
+        f, _, _ = forces_of(grid, samples, z, device, F_L=A, Fp_inv=fp)
+        dVdA = -f.T @ y
+        np.testing.assert_allclose(f.sum(axis=0), 0.0, atol=1e-9 * np.abs(f).max())
+        eps = 1e-6
+        for i, j in [(0, 0), (0, 2), (1, 0), (2, 1), (2, 2)]:
+            Ap, Am = A.copy(), A.copy()
+            Ap[i, j] += eps
+            Am[i, j] -= eps
+            dV = (forces_of(grid, samples, z, device, F_L=Ap, Fp_inv=fp)[2]
+                  - forces_of(grid, samples, z, device, F_L=Am, Fp_inv=fp)[2]) / (2 * eps)
+            assert dVdA[i, j] == pytest.approx(dV, rel=1e-5, abs=1e-8 * np.abs(dVdA).max())
 
 
 # -- advection (Eq. 15) -------------------------------------------------------------------------

@@ -12,6 +12,7 @@ The scene API::
 from wsim.bem.body import BemBody
 from wsim.body import Body
 from wsim.colliders import Collider, GroundPlane, MeshCollider
+from wsim.eol.body import EolBody, Plasticity
 from wsim.errors import (
     InvalidMaterial,
     InvalidMesh,
@@ -39,6 +40,8 @@ __all__ = [
     "Body",
     "PbdBody",
     "BemBody",
+    "EolBody",
+    "Plasticity",
     "PbdReconstruction",
     "PbdRecording",
     "record",

@@ -34,3 +34,15 @@ def as_vec3(value: Sequence[float] | np.ndarray, what: str) -> np.ndarray:
     if a.shape != (3,) or not np.all(np.isfinite(a)):
         raise InvalidParameter(f"{what} must be 3 finite numbers, got {value!r}")
     return a
+
+
+def as_rotation(value: object, what: str) -> np.ndarray:
+    """A proper 3x3 rotation matrix (None means the identity), or InvalidParameter naming ``what``."""
+    try:
+        R = np.eye(3) if value is None else np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        R = np.zeros(0)
+    if R.shape != (3, 3) or not np.all(np.isfinite(R)) or not np.allclose(R @ R.T, np.eye(3), atol=1e-6) \
+            or np.linalg.det(R) <= 0.0:
+        raise InvalidParameter(f"{what} must be a proper 3x3 rotation matrix")
+    return R

@@ -35,7 +35,7 @@ from wsim.cache import OperatorCache
 from wsim.colliders import Collider
 from wsim.errors import InvalidParameter, SimulationDiverged
 from wsim.materials import ElasticMaterial
-from wsim.validate import as_vec3, finite_number
+from wsim.validate import as_rotation, as_vec3, finite_number
 
 TractionFn = Callable[[float], Any]
 STAGES = ("history", "loads", "solve", "correction", "frame")
@@ -120,10 +120,7 @@ class BemBody(Body):
         # validates (closed, oriented, non-degenerate) before anything is built
         surface = prepare_surface(vertices, faces, double_nodes=double_nodes, name=f"body '{name}'")
         props = mass_properties(surface.nodes, surface.faces, material.rho)
-        R0 = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
-        if R0.shape != (3, 3) or not np.all(np.isfinite(R0)) or not np.allclose(R0 @ R0.T, np.eye(3), atol=1e-6) \
-                or np.linalg.det(R0) <= 0.0:
-            raise InvalidParameter(f"body '{name}': rotation must be a proper 3x3 rotation matrix")
+        R0 = as_rotation(rotation, f"body '{name}': rotation")
         if operators is not None:
             if not isinstance(operators, BemOperators):
                 raise InvalidParameter(f"body '{name}': operators must be a wsim.bem.BemOperators")

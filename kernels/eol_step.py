@@ -1,0 +1,272 @@
+"""Warp kernels of one EoL step on the nodes of the intermediate grid (Fan et al. Algorithm 1, Eqs. 16-25, 30-33).
+
+Nodal arrays are flat (n_nodes,), in the grid's node order s = (i ny + j) nz + k. Velocities are
+the material's velocity in the axes of the Lagrangian coordinates ("LS axes": the rigid frame's
+body axes, or world axes for affine coordinates), where the Lagrangian part is the affine field
+J_L(y) q1_dot = L y + c (rigid: L = [omega]x, c = nu; affine: L = A_dot, c = b_dot) and the
+Eulerian part is F_L v (F_L = I rigid, A affine; Eqs. 2 and 9):
+
+    w_s = L y_s + c + F_L v_s.
+
+The velocity-impulse update (Eq. 16) in these axes is w_hat = w + dt a with
+
+    a_s = g_s / m_s + gravity - [rigid] omega x (omega x y_s) - 2 L v_s,
+
+the quadratic-velocity (centrifugal, Coriolis) forces. They come from writing Newton's law for a
+material point in moving axes: with V = R^T x_dot, dV/dt = R^T x_ddot - omega x V. The part
+-omega x nu is carried exactly by transporting nu between steps (the body holds the world linear
+velocity); -omega x (omega x y) is the centrifugal load; one -omega x v comes from the axes, the
+other from advecting only v* (not the rigid part) while the material moves (Coriolis, 2 omega x v).
+For affine coordinates (inertial world axes) only the advection term remains: -2 A_dot v.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from wsim.kernels.eol_grid import (
+    cell_of,
+    corner_gradient,
+    corner_weight,
+    gradient_in_cell,
+    grid_coordinates,
+    local_coordinates,
+)
+
+CHUNKS = 256  # threads of the chunked reductions (each sums n_nodes / CHUNKS nodes, then one atomic)
+
+
+@wp.func
+def node_position(s: int, shape: wp.vec3i, origin: wp.vec3d, h: wp.float64) -> wp.vec3d:
+    i = s // (shape[1] * shape[2])
+    j = (s // shape[2]) % shape[1]
+    k = s % shape[2]
+    return origin + h * wp.vec3d(wp.float64(i), wp.float64(j), wp.float64(k))
+
+
+@wp.kernel
+def node_velocities(
+    v: wp.array(dtype=wp.vec3d),
+    mass: wp.array(dtype=wp.float64),
+    forces: wp.array(dtype=wp.vec3d),
+    shape: wp.vec3i,
+    origin: wp.vec3d,
+    h: wp.float64,
+    L: wp.mat33d,
+    c: wp.vec3d,
+    F_L: wp.mat33d,
+    gravity: wp.vec3d,
+    centrifugal: int,
+    mass_floor: wp.float64,
+    w: wp.array(dtype=wp.vec3d),
+    a: wp.array(dtype=wp.vec3d),
+):
+    """w_s (current material velocity) and a_s (acceleration) of every node with mass; zero elsewhere.
+
+    Forces are divided by max(m_s, mass_floor): a node whose support barely holds material (a
+    Gauss point in the far corner of its cell) would otherwise be accelerated by the full stress
+    gradient acting on almost no mass, the small-mass instability of grid methods."""
+    s = wp.tid()
+    if mass[s] <= wp.float64(0.0):
+        w[s] = wp.vec3d()
+        a[s] = wp.vec3d()
+        return
+    y = node_position(s, shape, origin, h)
+    Ly = L * y
+    w[s] = Ly + c + F_L * v[s]
+    acc = forces[s] / wp.max(mass[s], mass_floor) + gravity - wp.float64(2.0) * (L * v[s])
+    if centrifugal != 0:
+        acc = acc - L * Ly
+    a[s] = acc
+
+
+@wp.kernel
+def velocity_moments(
+    w0: wp.array(dtype=wp.vec3d),
+    w1: wp.array(dtype=wp.vec3d),
+    mass: wp.array(dtype=wp.float64),
+    shape: wp.vec3i,
+    origin: wp.vec3d,
+    h: wp.float64,
+    centre: wp.vec3d,
+    weighted: int,
+    out: wp.array(dtype=wp.float64),
+):
+    """Moments over nodes with mass (about ``centre``, for conditioning): out[0:16] = sum k yb yb^T,
+    out[16:28] = sum k w0 yb^T, out[28:40] = sum k w1 yb^T with yb = (y - centre, 1) and k = 1
+    (the paper's 2-norm, Eq. 23) or k = m_s (``weighted``: the mass norm): everything the
+    least-squares split needs, for rigid and affine coordinates alike."""
+    chunk = wp.tid()
+    n = mass.shape[0]
+    per = (n + CHUNKS - 1) // CHUNKS
+    C = wp.mat44d()
+    B0 = wp.mat44d()
+    B1 = wp.mat44d()
+    one = wp.float64(1.0)
+    for s in range(chunk * per, wp.min(n, (chunk + 1) * per)):
+        if mass[s] > wp.float64(0.0):
+            y = node_position(s, shape, origin, h) - centre
+            yb = wp.vec4d(y[0], y[1], y[2], one)
+            m = one
+            if weighted != 0:
+                m = mass[s]
+            C += m * wp.outer(yb, yb)
+            B0 += m * wp.outer(wp.vec4d(w0[s][0], w0[s][1], w0[s][2], wp.float64(0.0)), yb)
+            B1 += m * wp.outer(wp.vec4d(w1[s][0], w1[s][1], w1[s][2], wp.float64(0.0)), yb)
+    for r in range(4):
+        for q in range(4):
+            wp.atomic_add(out, 4 * r + q, C[r, q])
+    for r in range(3):
+        for q in range(4):
+            wp.atomic_add(out, 16 + 4 * r + q, B0[r, q])
+            wp.atomic_add(out, 28 + 4 * r + q, B1[r, q])
+
+
+@wp.kernel
+def eulerian_residual(
+    w0: wp.array(dtype=wp.vec3d),
+    w1: wp.array(dtype=wp.vec3d),
+    mass: wp.array(dtype=wp.float64),
+    shape: wp.vec3i,
+    origin: wp.vec3d,
+    h: wp.float64,
+    L0: wp.mat33d,
+    c0: wp.vec3d,
+    L1: wp.mat33d,
+    c1: wp.vec3d,
+    F_L_inv: wp.mat33d,
+    v0: wp.array(dtype=wp.vec3d),
+    v1: wp.array(dtype=wp.vec3d),
+    vmax: wp.array(dtype=wp.float64),
+):
+    """v*_i = F_L^-1 (w_i - L_i y - c_i) (Eq. 24 for both parts of Eq. 32), and per axis max |v*_i| (Eq. 33)."""
+    chunk = wp.tid()
+    n = mass.shape[0]
+    per = (n + CHUNKS - 1) // CHUNKS
+    m0 = wp.vec3d()
+    m1 = wp.vec3d()
+    for s in range(chunk * per, wp.min(n, (chunk + 1) * per)):
+        if mass[s] > wp.float64(0.0):
+            y = node_position(s, shape, origin, h)
+            a = F_L_inv * (w0[s] - L0 * y - c0)
+            b = F_L_inv * (w1[s] - L1 * y - c1)
+            v0[s] = a
+            v1[s] = b
+            for d in range(3):
+                m0[d] = wp.max(m0[d], wp.abs(a[d]))
+                m1[d] = wp.max(m1[d], wp.abs(b[d]))
+        else:
+            v0[s] = wp.vec3d()
+            v1[s] = wp.vec3d()
+    for d in range(3):
+        wp.atomic_max(vmax, d, m0[d])
+        wp.atomic_max(vmax, 3 + d, m1[d])
+
+
+@wp.kernel
+def combine(v0: wp.array(dtype=wp.vec3d), v1: wp.array(dtype=wp.vec3d), dt: wp.float64, out: wp.array(dtype=wp.vec3d)):
+    """v* = v*_0 + dt v*_1 (Eq. 32c)."""
+    s = wp.tid()
+    out[s] = v0[s] + dt * v1[s]
+
+
+@wp.kernel
+def extrapolate(v: wp.array3d(dtype=wp.vec3d), mass: wp.array3d(dtype=wp.float64), out: wp.array3d(dtype=wp.vec3d)):
+    """Nodes without mass take the mean v of their face neighbours with mass (one layer): the empty
+    nodes of a cell the material is flowing into carry its velocity, so advecting z moves the
+    material boundary instead of pinning it."""
+    i, j, k = wp.tid()
+    if mass[i, j, k] > wp.float64(0.0):
+        out[i, j, k] = v[i, j, k]
+        return
+    acc = wp.vec3d()
+    cnt = wp.float64(0.0)
+    for d in range(6):
+        a = i
+        b = j
+        c = k
+        if d == 0:
+            a = i - 1
+        elif d == 1:
+            a = i + 1
+        elif d == 2:
+            b = j - 1
+        elif d == 3:
+            b = j + 1
+        elif d == 4:
+            c = k - 1
+        else:
+            c = k + 1
+        if a >= 0 and b >= 0 and c >= 0 and a < v.shape[0] and b < v.shape[1] and c < v.shape[2]:
+            if mass[a, b, c] > wp.float64(0.0):
+                acc += v[a, b, c]
+                cnt += wp.float64(1.0)
+    if cnt > wp.float64(0.0):
+        out[i, j, k] = acc / cnt
+    else:
+        out[i, j, k] = wp.vec3d()
+
+
+@wp.kernel
+def sample_nodes(
+    field: wp.array3d(dtype=wp.vec3d),
+    origin: wp.vec3d,
+    h: wp.float64,
+    y: wp.array(dtype=wp.vec3d),
+    nodes: wp.array2d(dtype=wp.int32),
+    phi: wp.array2d(dtype=wp.float64),
+):
+    """The 8 flat node indices and trilinear weights of the cell holding each point y (contact rows, Eq. 28)."""
+    p = wp.tid()
+    g = grid_coordinates(field, y[p], origin, h)
+    cell = cell_of(field, g)
+    t = local_coordinates(g, cell)
+    for c in range(8):
+        a = cell[0] + c // 4
+        b = cell[1] + (c // 2) % 2
+        d = cell[2] + c % 2
+        nodes[p, c] = wp.int32((a * field.shape[1] + b) * field.shape[2] + d)
+        phi[p, c] = corner_weight(c, t)
+
+
+@wp.kernel
+def viscous_forces(
+    w: wp.array3d(dtype=wp.vec3d),
+    origin: wp.vec3d,
+    h: wp.float64,
+    y: wp.array(dtype=wp.vec3d),
+    volume: wp.array(dtype=wp.float64),
+    F_L_inv: wp.mat33d,
+    eta: wp.float64,
+    forces: wp.array3d(dtype=wp.vec3d),
+):
+    """Kelvin-Voigt damping: Cauchy stress 2 eta D, D = sym(grad_x w), grad_x w = grad_y w F_L^-1;
+    f_s = -sum_i w_i 2 eta D F_L^-T grad_y Phi_s(y_i) (material volume for spatial volume: small
+    volume change). A rigid velocity field has D = 0: only deformation is damped."""
+    i = wp.tid()
+    g = grid_coordinates(w, y[i], origin, h)
+    cell = cell_of(w, g)
+    t = local_coordinates(g, cell)
+    Gx = gradient_in_cell(w, cell, t, h) * F_L_inv
+    D = wp.float64(0.5) * (Gx + wp.transpose(Gx))
+    stress = volume[i] * wp.float64(2.0) * eta * D * wp.transpose(F_L_inv)
+    for c in range(8):
+        wp.atomic_add(forces, cell[0] + c // 4, cell[1] + (c // 2) % 2, cell[2] + c % 2,
+                      -(stress * corner_gradient(c, t, h)))
+
+
+@wp.kernel
+def add_acceleration(forces: wp.array(dtype=wp.vec3d), mass: wp.array(dtype=wp.float64), mass_floor: wp.float64,
+                     a: wp.array(dtype=wp.vec3d)):
+    """a_s += f_s / max(m_s, mass_floor) on nodes with mass."""
+    s = wp.tid()
+    if mass[s] > wp.float64(0.0):
+        a[s] = a[s] + forces[s] / wp.max(mass[s], mass_floor)
+
+
+@wp.kernel
+def floor_mass(mass: wp.array(dtype=wp.float64), floor: wp.float64):
+    """m_s <- max(m_s, floor) on nodes with mass (see ``EolBody``'s ``mass_floor``)."""
+    s = wp.tid()
+    if mass[s] > wp.float64(0.0):
+        mass[s] = wp.max(mass[s], floor)

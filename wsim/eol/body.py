@@ -1,0 +1,655 @@
+"""``EolBody``: an Eulerian-on-Lagrangian solid in a World (Fan, Litven, Levin, Pai; Algorithm 1).
+
+State. An Eulerian grid in the intermediate domain y stores the reference map z(y) (material
+coordinates, advected) and the Eulerian velocity v at its nodes; Lagrangian coordinates carry the
+grid through space: ``rigid`` x = R y + T (6 DOF, Eq. 1), ``affine`` x = A y + b (12 DOF, the
+linear-modal case of Eq. 7 with the affine modes), or ``eulerian`` (frame fixed: the purely
+Eulerian baseline of Fig. 7). The surface mesh and the material quadrature points live in the
+material domain z; each step Algorithm 2 finds them in y.
+
+One step (Table II's stages):
+
+1. **forces**: Neo-Hookean forces and lumped masses from the material points (``sample_forces``),
+   gravity, centrifugal and Coriolis loads (``node_velocities``): w_hat = w + dt a (Eq. 16).
+2. **collision**: surface triangles inside a collider (Eq. 27, one-point quadrature).
+3. **assembly** and **QP**: rows of Eq. (28) binned by a spatial collision grid; the QP of
+   Eq. (29) by a primal-dual active set; its solution split as w_0 + dt w_1 (Eq. 31).
+4. **LS**: the least-squares momentum split (Eqs. 23-25, 32) of w_0 and w_1 into Lagrangian
+   velocities and Eulerian residuals v*_0, v*_1; dt from Eq. (33), capped by the frame and the
+   explicit elastic limit.
+5. **advect**: v* advected by itself (v^{t+1}), the reference map advected by v^{t+1}
+   (Algorithm 1 steps 2-4, written for z = y - u), the Lagrangian pose integrated.
+6. **track**: Algorithm 2 for the material points and the surface; **plasticity** (Eqs. 34-37).
+
+Precision: float64 everywhere on the grid (strain is a difference of nearby absolute coordinates;
+the paper's J-bar and LS sums are ill-conditioned in float32). Friction is not modelled (as in
+the paper): contact is the frictionless volume constraint.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any, Sequence
+
+import numpy as np
+import warp as wp
+
+from wsim import mesh as wmesh
+from wsim.bem.frame import rodrigues
+from wsim.bem.fundamental import cross_matrix
+from wsim.body import Body
+from wsim.colliders import GroundPlane, MeshCollider
+from wsim.eol.advection import SCHEMES
+from wsim.eol.contact import ContactRows, assemble_rows, contact_qp
+from wsim.eol.grid import make_grid, material_samples
+from wsim.eol.timestep import adaptive_dt, elastic_dt_limit
+from wsim.errors import InvalidParameter, SimulationDiverged
+from wsim.kernels import eol_advect as ka
+from wsim.kernels import eol_contact as kc
+from wsim.kernels import eol_elastic as ke
+from wsim.kernels import eol_plastic as kp
+from wsim.kernels import eol_step as ks
+from wsim.kernels import eol_track as kt
+from wsim.materials import ElasticMaterial
+from wsim.validate import as_rotation, finite_number
+
+if TYPE_CHECKING:
+    from wsim.colliders import Collider
+
+LAGRANGIAN = ("rigid", "affine", "eulerian")
+STAGES = ("forces", "collision", "assembly", "qp", "ls", "advect", "track", "plasticity")
+
+
+@dataclass(frozen=True)
+class Plasticity:
+    """Plastic flow of Eqs. (34-37).
+
+    Args:
+        yield_stress: ||dev tau|| [Pa] (Frobenius norm of the deviatoric Kirchhoff stress) below
+            which the material is elastic.
+        flow_rate: [1/s]; the fraction gamma of Eq. (37) removed per step is
+            min(1, flow_rate dt (1 - yield/||dev tau||)).
+    """
+
+    yield_stress: float
+    flow_rate: float = 100.0
+
+    def __post_init__(self) -> None:
+        y = finite_number(self.yield_stress, "Plasticity: yield_stress [Pa]")
+        f = finite_number(self.flow_rate, "Plasticity: flow_rate [1/s]")
+        if y < 0.0:
+            raise InvalidParameter(f"Plasticity: yield_stress = {y} Pa must be >= 0")
+        if f <= 0.0:
+            raise InvalidParameter(f"Plasticity: flow_rate = {f} 1/s must be > 0")
+
+
+@dataclass
+class StepRecord:
+    """One EoL step: its start time and dt [s], contact rows and active rows, LS residual max |v*| [m/s]."""
+
+    time: float
+    dt: float
+    rows: int
+    active: int
+    v_star: float
+
+
+class EolBody(Body):
+    """An Eulerian-on-Lagrangian solid.
+
+    Args:
+        mesh: closed, outward-oriented surface (trimesh or (vertices, faces)) in world coordinates [m].
+        material: compressible ``ElasticMaterial`` (elastic forces are explicit).
+        resolution: grid cells along the longest side of the body's bounding box (>= 4).
+        lagrangian: "rigid" (6 DOF), "affine" (12 DOF) or "eulerian" (no Lagrangian motion).
+        advection: "semi-lagrangian" (first order, the paper's) or "bfecc" (second order, 3x cost).
+        cfl: alpha of Eq. (30), in (0, 1): the Eulerian velocity moves at most this many cells per step.
+        plasticity: a :class:`Plasticity`, or None for a purely elastic body.
+        padding: empty cells around the body (room for Eulerian deformation).
+        dt_max: cap on the step [s] besides the frame and the elastic limit (None: none).
+        elastic_safety: the elastic cap is this fraction of h / c1 (P-wave cell crossing time).
+        quadrature: material points per cell axis (Gauss-Legendre).
+        collision_cell: edge of the spatial collision grid that bins contact rows, in cells h.
+        contact_relaxation: time [s] over which overlap already present is pushed out (b -= vol / tau).
+        track_tol: Algorithm 2 tolerance, as a fraction of h.
+        fictitious: include the centrifugal and Coriolis loads on the Eulerian velocities.
+        damping: Kelvin-Voigt viscosity eta [Pa s] of the deformation (0: none; the paper states
+            none, and then only advection dissipates). Explicit: it adds the cap rho h^2 / (12 eta).
+        mass_floor: every node with material has at least mass_floor rho h^3 (a small phantom mass).
+            A node whose support holds a sliver of material (a quadrature point in the far corner
+            of its cell) is otherwise flung by stress gradients and by contact impulses, which
+            the QP finds cheapest to apply there: huge Eulerian velocity, collapsing dt. The floor
+            is used consistently (forces, split, QP, momentum), so momentum stays exact; the
+            phantom mass is reported by ``node_masses`` (0.02: about 0.5 % at 8 cells across a sphere).
+        split: norm of the least-squares momentum split (Eq. 23): "uniform" (the paper's 2-norm
+            over nodes, smallest max-type Eulerian velocity) or "mass" (the mass-weighted norm:
+            the Eulerian velocities then carry no net linear or angular momentum, so advection
+            error cannot change the body's momentum to first order; the default).
+        profile: synchronize the device after each stage so ``timings`` splits GPU time by stage.
+    """
+
+    def __init__(
+        self,
+        mesh: Any,
+        material: ElasticMaterial,
+        *,
+        resolution: int = 32,
+        lagrangian: str = "rigid",
+        advection: str = "semi-lagrangian",
+        cfl: float = 0.5,
+        plasticity: Plasticity | None = None,
+        name: str = "eol_body",
+        rotation: Any = None,
+        velocity: Sequence[float] = (0.0, 0.0, 0.0),
+        angular_velocity: Sequence[float] = (0.0, 0.0, 0.0),
+        padding: int = 2,
+        dt_max: float | None = None,
+        elastic_safety: float = 0.5,
+        quadrature: int = 2,
+        collision_cell: float = 1.0,
+        contact_relaxation: float = 0.05,
+        track_tol: float = 1e-9,
+        fictitious: bool = True,
+        damping: float = 0.0,
+        mass_floor: float = 0.02,
+        split: str = "mass",
+        profile: bool = False,
+    ) -> None:
+        super().__init__(name, velocity, angular_velocity)
+        p = f"body '{name}'"
+        if not isinstance(material, ElasticMaterial):
+            raise InvalidParameter(f"{p}: material must be a wsim.ElasticMaterial")
+        if material.incompressible:
+            raise InvalidParameter(f"{p}: EoL elasticity is explicit and needs a compressible material (nu < 0.5)")
+        if lagrangian not in LAGRANGIAN:
+            raise InvalidParameter(f"{p}: lagrangian = {lagrangian!r} must be one of {', '.join(LAGRANGIAN)}")
+        if advection not in SCHEMES:
+            raise InvalidParameter(f"{p}: advection = {advection!r} must be one of {', '.join(SCHEMES)}")
+        cfl_f = finite_number(cfl, f"{p}: cfl")
+        if not 0.0 < cfl_f < 1.0:
+            raise InvalidParameter(f"{p}: cfl = {cfl_f} must be in (0, 1) (Eq. 30 of first-order advection)")
+        if split not in ("mass", "uniform"):
+            raise InvalidParameter(f"{p}: split = {split!r} must be 'mass' or 'uniform'")
+        self.split = split
+        if plasticity is not None and not isinstance(plasticity, Plasticity):
+            raise InvalidParameter(f"{p}: plasticity must be a wsim.eol.Plasticity or None")
+        for value, what, lo in ((padding, "padding", 1), (quadrature, "quadrature", 1)):
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lo:
+                raise InvalidParameter(f"{p}: {what} = {value!r} must be an integer >= {lo}")
+        if dt_max is not None:
+            dt_max = finite_number(dt_max, f"{p}: dt_max [s]")
+            if dt_max <= 0.0:
+                raise InvalidParameter(f"{p}: dt_max = {dt_max} s must be > 0")
+        self._positive = {k: finite_number(v, f"{p}: {k}") for k, v in
+                          (("elastic_safety", elastic_safety), ("collision_cell", collision_cell),
+                           ("contact_relaxation", contact_relaxation), ("track_tol", track_tol))}
+        for k, v in self._positive.items():
+            if v <= 0.0:
+                raise InvalidParameter(f"{p}: {k} = {v} must be > 0")
+        self.damping = finite_number(damping, f"{p}: damping [Pa s]")
+        floor = finite_number(mass_floor, f"{p}: mass_floor")
+        if self.damping < 0.0 or not 0.0 <= floor <= 1.0:
+            raise InvalidParameter(f"{p}: damping must be >= 0 and mass_floor in [0, 1]")
+        vertices, faces = wmesh.surface_arrays(mesh, p)
+        wmesh.check_surface(vertices, faces, name=p, closed=True)
+        self.grid = make_grid(vertices, resolution, int(padding))  # validates the resolution
+        self.material = material
+        self.lagrangian = lagrangian
+        self.advection = advection
+        self.cfl = cfl_f
+        self.plasticity = plasticity
+        self.dt_max = dt_max
+        self.fictitious = bool(fictitious)
+        self.profile = bool(profile)
+        self._R0 = as_rotation(rotation, f"{p}: rotation")
+        self._faces = faces.astype(np.int32)
+        samples = material_samples(self.grid, vertices, faces, per_axis=int(quadrature))
+        if len(samples.weights) == 0:
+            raise InvalidParameter(f"{p}: no material point inside the mesh at resolution {resolution}")
+        # the intermediate domain is centred on the centre of mass: rigid rotations turn about it
+        self.com = samples.points.mean(axis=0)
+        self.grid = replace(self.grid, origin=self.grid.origin - self.com)
+        self._z_points = samples.points - self.com
+        self._volumes = samples.weights
+        self._z_vertices = vertices - self.com
+        self.mass = material.rho * float(samples.weights.sum())
+        self.dt_elastic = elastic_dt_limit(self.grid.h, material, self._positive["elastic_safety"])
+        if self.damping > 0.0:  # explicit viscosity: diffusion number eta dt / (rho h^2) <= 1/12
+            self.dt_elastic = min(self.dt_elastic, material.rho * self.grid.h**2 / (12.0 * self.damping))
+        self._mass_floor = floor * material.rho * self.grid.h**3
+        self.timings = {k: 0.0 for k in STAGES}
+        self.history: list[StepRecord] = []
+        self.contact_impulse = np.zeros(3)
+        self.gravity_impulse = np.zeros(3)
+        self.steps = 0
+        self.time = 0.0
+        self._bound = False
+        self._failure: tuple[str, str, str] | None = None
+
+    # -- read-outs -------------------------------------------------------------------------
+    @property
+    def faces(self) -> np.ndarray:
+        return self._faces
+
+    @property
+    def rest_vertices(self) -> np.ndarray:
+        """(V, 3) material-space vertex positions (centred on the centre of mass) [m]."""
+        return self._z_vertices
+
+    @property
+    def frame(self) -> tuple[np.ndarray, np.ndarray]:
+        """(F_L, T): the Lagrangian map x = F_L y + T (F_L = R rigid, A affine, I Eulerian)."""
+        return self._F.copy(), self._T.copy()
+
+    def _require_bound(self) -> None:
+        if not self._bound:
+            raise InvalidParameter(f"body '{self.name}': add it to a World (or call bind) first")
+
+    def intermediate_vertices(self) -> np.ndarray:
+        """(V, 3) surface vertices in the intermediate domain y (Algorithm 2) [m]."""
+        self._require_bound()
+        return self._y_vertices.numpy()
+
+    def points(self) -> np.ndarray:
+        return self.intermediate_vertices() @ self._F.T + self._T
+
+    def eulerian_velocity(self) -> np.ndarray:
+        """(n_nodes, 3) Eulerian velocities v [m/s] (zero on nodes without mass)."""
+        self._require_bound()
+        return self._v.numpy() * (self._mass.numpy() > 0.0)[:, None]
+
+    def reference_map(self) -> np.ndarray:
+        """(n_nodes, 3) material coordinates z at the grid nodes [m]."""
+        self._require_bound()
+        return self._z.numpy()
+
+    def node_masses(self) -> np.ndarray:
+        """(n_nodes,) lumped masses of the last step's force pass [kg], with the ``mass_floor``."""
+        self._require_bound()
+        return self._mass.numpy()
+
+    @property
+    def angular_velocity(self) -> np.ndarray:
+        """World angular velocity of the Lagrangian frame [rad/s] (rigid: R omega; affine: of A's rotation)."""
+        if self.lagrangian == "rigid":
+            return self._F @ self._omega
+        if self.lagrangian == "affine":
+            W = self._Adot @ np.linalg.inv(self._F)
+            return 0.5 * np.array([W[2, 1] - W[1, 2], W[0, 2] - W[2, 0], W[1, 0] - W[0, 1]])
+        return np.zeros(3)
+
+    def node_world_velocities(self) -> np.ndarray:
+        """(n_nodes, 3) world velocity of the material at each node [m/s]: Eq. (2) / (9)."""
+        self._require_bound()
+        L, c = self._lagrangian_field()
+        y = self.grid.node_positions()
+        w = y @ L.T + c + self.eulerian_velocity() @ self._F_L().T
+        return w @ self._axes().T
+
+    def linear_momentum(self) -> np.ndarray:
+        """sum_s m_s x_dot_s over the nodes [kg m/s] (world)."""
+        return self.node_masses() @ self.node_world_velocities()
+
+    def kinetic_energy(self) -> float:
+        m = self.node_masses()
+        return 0.5 * float(m @ np.einsum("ij,ij->i", w := self.node_world_velocities(), w))
+
+    def volume(self) -> float:
+        """Enclosed volume of the tracked surface [m^3]."""
+        return wmesh.signed_volume(self.points(), self._faces)
+
+    @property
+    def elastic_energy(self) -> float:
+        """Elastic energy [J] of the last force pass."""
+        return float(self._energy.numpy()[0]) if self._bound else 0.0
+
+    def plastic_strain(self) -> np.ndarray:
+        """(P, 3, 3) F_p^-1 at the material points (identity without plasticity)."""
+        self._require_bound()
+        return self._Fp_inv.numpy() if self.plasticity else np.broadcast_to(np.eye(3), (len(self._volumes), 3, 3))
+
+    # -- Body interface --------------------------------------------------------------------------
+    def bind(self, device: wp.Device, gravity: np.ndarray, up: np.ndarray) -> None:
+        self._device = device
+        self._gravity = np.asarray(gravity, dtype=np.float64)
+        self._up = np.asarray(up, dtype=np.float64)
+        grid = self.grid
+        shape = grid.node_shape
+        n = grid.n_nodes
+        d = device
+        y_nodes = grid.node_positions()
+        self._shape = wp.vec3i(*shape)
+        self._origin = wp.vec3d(*grid.origin)
+        self._h = wp.float64(grid.h)
+        vec = dict(dtype=wp.vec3d, device=d)
+        self._z = wp.array(y_nodes, **vec)  # at rest y = z
+        self._v = wp.zeros(n, **vec)
+        self._forces = wp.zeros(n, **vec)
+        self._mass = wp.zeros(n, dtype=wp.float64, device=d)
+        self._w = wp.zeros(n, **vec)
+        self._a = wp.zeros(n, **vec)
+        self._v0 = wp.zeros(n, **vec)
+        self._v1 = wp.zeros(n, **vec)
+        self._vstar = wp.zeros(n, **vec)
+        self._tmp = wp.zeros(n, **vec)
+        self._tmp2 = wp.zeros(n, **vec)
+        self._moments = wp.zeros(40, dtype=wp.float64, device=d)
+        self._vmax = wp.zeros(6, dtype=wp.float64, device=d)
+        self._energy = wp.zeros(1, dtype=wp.float64, device=d)
+        self._z_pts = wp.array(self._z_points, **vec)
+        self._y_pts = wp.array(self._z_points, **vec)
+        self._vol = wp.array(self._volumes, dtype=wp.float64, device=d)
+        self._z_vert = wp.array(self._z_vertices, **vec)
+        self._y_vertices = wp.array(self._z_vertices, **vec)
+        self._faces_dev = wp.array(self._faces, dtype=wp.vec3i, device=d)
+        self._iters = wp.zeros(max(len(self._volumes), len(self._z_vertices)), dtype=wp.int32, device=d)
+        plastic = self.plasticity is not None
+        # F_p^-1 only for plastic bodies (a 1-element placeholder keeps the kernel signature)
+        self._Fp_inv = wp.array(np.broadcast_to(np.eye(3), (len(self._volumes) if plastic else 1, 3, 3)).copy(),
+                                dtype=wp.mat33d, device=d)
+        self._flowing = wp.zeros(1, dtype=wp.int32, device=d)
+        # Lagrangian state; the initial velocity is a rigid motion about the centre of mass
+        v0, w0 = self.initial_velocity, self.initial_angular_velocity
+        self._T = self.com.copy()
+        self._F = self._R0.copy() if self.lagrangian != "eulerian" else np.eye(3)
+        self._omega = self._F.T @ w0  # rigid: body axes
+        self._Tdot = v0.copy()  # rigid: world velocity of the frame origin
+        self._Adot = cross_matrix(w0) @ self._F  # affine
+        if self.lagrangian == "eulerian":  # all motion is Eulerian: v = w0 x y + v0 on the grid
+            self._v = wp.array(np.cross(w0, y_nodes) + v0, **vec)
+        self._colliders: list[Collider] = []
+        self._dt_prev = self.dt_elastic
+        self._bound = True
+        self._force_pass()
+
+    def attach_colliders(self, colliders: Sequence[Collider]) -> None:
+        for c in colliders:
+            if not isinstance(c, (GroundPlane, MeshCollider)):
+                raise InvalidParameter(f"body '{self.name}': unsupported collider {type(c).__name__}")
+        self._colliders = list(colliders)
+
+    def advance(self, t0: float, t1: float) -> None:
+        """Adaptive steps (Eq. 33) from the body's time to t1, each capped by the frame end, the
+        elastic limit and ``dt_max``."""
+        self._require_bound()
+        eps = 1e-9 * max(t1 - t0, 1e-12)
+        while self._failure is None and self.time < t1 - eps:
+            cap = min(t1 - self.time, self.dt_elastic, self.dt_max or math.inf)
+            self._step(cap)
+        if self._failure is None:
+            self.time = t1
+
+    def check_finite(self, frame: int, time_: float) -> None:
+        if self._failure is None:
+            for q, arr in (("reference map", self._z), ("Eulerian velocity", self._v), ("surface", self._y_vertices)):
+                if not np.all(np.isfinite(arr.numpy())):
+                    self._failure = (q, "", "non-finite")
+                    break
+        if self._failure is not None:
+            quantity, detail, reason = self._failure
+            raise SimulationDiverged(self.name, frame, quantity, time_, detail, reason)
+
+    # -- the step ------------------------------------------------------------------------------
+    def _tick(self, stage: str, t0: float) -> float:
+        if self.profile and not self._device.is_cpu:
+            wp.synchronize_device(self._device)
+        t1 = time.perf_counter()
+        self.timings[stage] += t1 - t0
+        return t1
+
+    def _F_L(self) -> np.ndarray:
+        """The Lagrangian deformation gradient in the velocity axes: A (affine), I (rigid, Eulerian)."""
+        return self._F if self.lagrangian == "affine" else np.eye(3)
+
+    def _axes(self) -> np.ndarray:
+        """Velocity axes -> world: R for rigid (body axes), I otherwise."""
+        return self._F if self.lagrangian == "rigid" else np.eye(3)
+
+    def _lagrangian_field(self) -> tuple[np.ndarray, np.ndarray]:
+        """(L, c) with J_L(y) q1_dot = L y + c in the velocity axes."""
+        if self.lagrangian == "rigid":
+            return cross_matrix(self._omega), self._F.T @ self._Tdot
+        if self.lagrangian == "affine":
+            return self._Adot.copy(), self._Tdot.copy()
+        return np.zeros((3, 3)), np.zeros(3)
+
+    def _force_pass(self) -> None:
+        self._forces.zero_()
+        self._mass.zero_()
+        self._energy.zero_()
+        wp.launch(ke.sample_forces, dim=len(self._volumes), device=self._device,
+                  inputs=[self._z.reshape(self.grid.node_shape), self._origin, self._h, self._y_pts, self._vol,
+                          self._Fp_inv, int(self.plasticity is not None), _mat(self._F_L()),
+                          wp.float64(self.material.mu), wp.float64(self.material.lam), wp.float64(self.material.rho),
+                          self._forces.reshape(self.grid.node_shape), self._mass.reshape(self.grid.node_shape),
+                          self._energy])
+        if self._mass_floor > 0.0:
+            wp.launch(ks.floor_mass, dim=self.grid.n_nodes, device=self._device,
+                      inputs=[self._mass, wp.float64(self._mass_floor)])
+
+    def _step(self, cap: float) -> None:
+        d = self._device
+        n = self.grid.n_nodes
+        t = time.perf_counter()
+        # 1. forces (the force pass of this state was done at the end of the last step)
+        L, c = self._lagrangian_field()
+        g_axes = self._axes().T @ self._gravity
+        wp.launch(ks.node_velocities, dim=n, device=d,
+                  inputs=[self._v, self._mass, self._forces, self._shape, self._origin, self._h, _mat(L), wp.vec3d(*c),
+                          _mat(self._F_L()), wp.vec3d(*g_axes), int(self.fictitious and self.lagrangian == "rigid"),
+                          wp.float64(0.0), self._w, self._a])
+        if self.damping > 0.0:
+            shape = self.grid.node_shape
+            self._tmp.zero_()
+            wp.launch(ks.viscous_forces, dim=len(self._volumes), device=d,
+                      inputs=[self._w.reshape(shape), self._origin, self._h, self._y_pts, self._vol,
+                              _mat(np.linalg.inv(self._F_L())), wp.float64(self.damping), self._tmp.reshape(shape)])
+            wp.launch(ks.add_acceleration, dim=n, device=d,
+                      inputs=[self._tmp, self._mass, wp.float64(0.0), self._a])
+        t = self._tick("forces", t)
+        # 2-3. collision, assembly, QP
+        dt_guess = min(cap, 2.0 * self._dt_prev)
+        rows, t = self._contact_rows(t)
+        w0, w1 = self._w, self._a
+        n_active = 0
+        contact = None
+        if rows is not None:
+            m = self._mass.numpy()
+            inv = np.repeat(np.where(m > 0.0, 1.0 / np.where(m > 0.0, m, 1.0), 0.0), 3)
+            w_h, a_h = self._w.numpy().ravel(), self._a.numpy().ravel()
+            sol = contact_qp(rows, inv, w_h, a_h, dt_guess)
+            w0 = wp.array(sol.w0.reshape(-1, 3), dtype=wp.vec3d, device=d)
+            w1 = wp.array(sol.w1.reshape(-1, 3), dtype=wp.vec3d, device=d)
+            n_active = int(sol.active.sum())
+            contact = (sol, w_h, a_h, m)
+            t = self._tick("qp", t)
+        # 4. least-squares split of both parts (Eqs. 23-25, 32) and the step size (Eq. 33)
+        (L0, c0), (L1, c1) = self._split(w0, w1)
+        self._vmax.zero_()
+        wp.launch(ks.eulerian_residual, dim=ks.CHUNKS, device=d,
+                  inputs=[w0, w1, self._mass, self._shape, self._origin, self._h, _mat(L0), wp.vec3d(*c0), _mat(L1),
+                          wp.vec3d(*c1), _mat(np.linalg.inv(self._F_L())), self._v0, self._v1, self._vmax])
+        vmax = self._vmax.numpy()
+        if not np.all(np.isfinite(vmax)) or not np.all(np.isfinite(L0 + L1)):
+            self._failure = ("Eulerian velocity", f"non-finite at step {self.steps} (t = {self.time:.6g} s)", "non-finite")
+            return
+        h = self.grid.h
+        dt = adaptive_dt(vmax[:3], vmax[3:], h, self.cfl, cap)
+        if dt < 1e-9 * cap and dt < 1e-12:
+            self._failure = ("time step", f"dt = {dt:.3g} s collapsed at step {self.steps}", "diverging")
+            return
+        wp.launch(ks.combine, dim=n, device=d, inputs=[self._v0, self._v1, wp.float64(dt), self._vstar])
+        L_new, c_new = L0 + dt * L1, c0 + dt * c1
+        if contact is not None:  # momentum the QP delivered: sum_s m_s (w_s - w_hat_s)
+            sol, w_h, a_h, m_h = contact
+            dw = (sol.w0 + dt * sol.w1 - w_h - dt * a_h).reshape(-1, 3)
+            self.contact_impulse += self._axes() @ (m_h[:, None] * dw).sum(axis=0)
+        t = self._tick("ls", t)
+        # 5. advect v* by itself, then z by v^{t+1} (Algorithm 1), and move the frame
+        self._advect_fields(dt)
+        self._integrate_pose(dt, L_new, c_new)
+        t = self._tick("advect", t)
+        # 6. Algorithm 2 for the material points and the surface, the new state's forces
+        self._track()
+        t = self._tick("track", t)
+        if self.plasticity is not None:
+            self._flowing.zero_()
+            wp.launch(kp.plastic_flow, dim=len(self._volumes), device=d,
+                      inputs=[self._z.reshape(self.grid.node_shape), self._origin, self._h, self._y_pts,
+                              _mat(self._F_L()), wp.float64(self.material.mu), wp.float64(self.material.lam),
+                              wp.float64(self.plasticity.yield_stress), wp.float64(self.plasticity.flow_rate * dt),
+                              self._Fp_inv, self._flowing])
+            t = self._tick("plasticity", t)
+        self._force_pass()
+        self._tick("forces", t)
+        self.gravity_impulse += dt * self._m_total * self._gravity
+        self.history.append(StepRecord(time=self.time, dt=dt, rows=0 if rows is None else rows.m, active=n_active,
+                                       v_star=float(max(vmax[:3].max(), 0.0) + dt * vmax[3:].max())))
+        self.time += dt
+        self.steps += 1
+        self._dt_prev = dt
+
+    def _split(self, w0: wp.array, w1: wp.array) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+        """Lagrangian fields (L_i, c_i) of the least-squares split of w0 and w1 (Eq. 23)."""
+        if self.lagrangian == "eulerian":
+            self._m_total = float(np.sum(self._mass.numpy()))
+            z = (np.zeros((3, 3)), np.zeros(3))
+            return z, z
+        self._moments.zero_()
+        wp.launch(ks.velocity_moments, dim=ks.CHUNKS, device=self._device,
+                  inputs=[w0, w1, self._mass, self._shape, self._origin, self._h, wp.vec3d(0.0, 0.0, 0.0), int(self.split == "mass"), self._moments])
+        mom = self._moments.numpy()
+        C = mom[:16].reshape(4, 4)
+        self._m_total = C[3, 3] if self.split == "mass" else float(np.sum(self._mass.numpy()))
+        out = []
+        for B in (mom[16:28].reshape(3, 4), mom[28:40].reshape(3, 4)):
+            if self.lagrangian == "affine":  # x_dot = Q (y, 1): Q = B C^-1 whatever the metric A^-T A^-1
+                Q = np.linalg.solve(C.T, B.T).T
+                out.append((Q[:, :3], Q[:, 3]))
+            else:  # rigid: normal equations of J_L = [-[y], I] from the same moments
+                Syy, sy, cnt = C[:3, :3], C[:3, 3], C[3, 3]
+                N = np.zeros((6, 6))
+                N[:3, :3] = np.trace(Syy) * np.eye(3) - Syy
+                N[:3, 3:] = cross_matrix(sy)
+                N[3:, :3] = -cross_matrix(sy)
+                N[3:, 3:] = cnt * np.eye(3)
+                rhs = np.concatenate([[B[2, 1] - B[1, 2], B[0, 2] - B[2, 0], B[1, 0] - B[0, 1]], B[:, 3]])
+                q = np.linalg.solve(N, rhs)
+                out.append((cross_matrix(q[:3]), q[3:]))
+        return out[0], out[1]
+
+    def _advect_fields(self, dt: float) -> None:
+        d = self._device
+        shape = self.grid.node_shape
+        mass3 = self._mass.reshape(shape)
+        # v* extended one layer into empty nodes, then advected by itself: v^{t+1}
+        wp.launch(ks.extrapolate, dim=shape, device=d, inputs=[self._vstar.reshape(shape), mass3, self._tmp.reshape(shape)])
+        self._advect(self._tmp, self._tmp, dt, self._v)
+        wp.launch(ks.extrapolate, dim=shape, device=d, inputs=[self._v.reshape(shape), mass3, self._tmp.reshape(shape)])
+        wp.copy(self._v, self._tmp)
+        # z = y - u: Dz/Dt = 0, advected by v^{t+1}
+        wp.copy(self._tmp2, self._z)
+        self._advect(self._tmp2, self._v, dt, self._z)
+
+    def _advect(self, q: wp.array, vel: wp.array, dt: float, out: wp.array) -> None:
+        d = self._device
+        shape = self.grid.node_shape
+        q3, v3, o3 = q.reshape(shape), vel.reshape(shape), out.reshape(shape)
+        dtw = wp.float64(dt)
+        if self.advection == "semi-lagrangian":
+            if q.ptr == out.ptr:
+                q3 = wp.clone(q3)
+            wp.launch(ka.semi_lagrangian, dim=shape, device=d, inputs=[q3, v3, self._origin, self._h, dtw, o3])
+            return
+        fwd = wp.empty_like(q3)
+        back = wp.empty_like(q3)
+        wp.launch(ka.semi_lagrangian, dim=shape, device=d, inputs=[q3, v3, self._origin, self._h, dtw, fwd])
+        wp.launch(ka.semi_lagrangian, dim=shape, device=d, inputs=[fwd, v3, self._origin, self._h, wp.float64(-dt), back])
+        wp.launch(ka.bfecc_combine, dim=shape, device=d, inputs=[q3, back, fwd])
+        wp.launch(ka.semi_lagrangian, dim=shape, device=d, inputs=[fwd, v3, self._origin, self._h, dtw, o3])
+
+    def _integrate_pose(self, dt: float, L: np.ndarray, c: np.ndarray) -> None:
+        if self.lagrangian == "rigid":
+            self._omega = np.array([L[2, 1], L[0, 2], L[1, 0]])
+            self._Tdot = self._F @ c  # world velocity of the origin: transported exactly between steps
+            self._T = self._T + dt * self._Tdot
+            self._F = self._F @ rodrigues(dt * self._omega)
+        elif self.lagrangian == "affine":
+            self._Adot, self._Tdot = L, c
+            self._T = self._T + dt * c
+            self._F = self._F + dt * L
+
+    def _track(self) -> None:
+        d = self._device
+        z3 = self._z.reshape(self.grid.node_shape)
+        tol = wp.float64(self._positive["track_tol"] * self.grid.h)
+        for zs, ys in ((self._z_pts, self._y_pts), (self._z_vert, self._y_vertices)):
+            wp.launch(kt.track_surface, dim=zs.shape[0], device=d,
+                      inputs=[z3, self._origin, self._h, zs, ys, tol, 20, ys, self._iters])
+
+    # -- contact --------------------------------------------------------------------------------
+    def _contact_rows(self, t: float) -> tuple[ContactRows | None, float]:
+        if not self._colliders:
+            return None, t
+        d = self._device
+        nf = len(self._faces)
+        depth = wp.zeros(nf, dtype=wp.float64, device=d)
+        cen = wp.zeros(nf, dtype=wp.vec3d, device=d)
+        an = wp.zeros(nf, dtype=wp.vec3d, device=d)
+        cn = wp.zeros(nf, dtype=wp.vec3d, device=d)
+        F, T = _mat(self._F), wp.vec3d(*self._T)
+        found = []
+        for ci, col in enumerate(self._colliders):
+            if isinstance(col, GroundPlane):
+                nrm = col.resolved_normal(self._up)
+                wp.launch(kc.plane_contacts, dim=nf, device=d,
+                          inputs=[self._y_vertices, self._faces_dev, F, T, wp.vec3d(*nrm), wp.float64(col.height),
+                                  depth, cen, an, cn])
+            else:
+                M = col.matrix(self.time)
+                wp.launch(kc.mesh_contacts, dim=nf, device=d,
+                          inputs=[self._y_vertices, self._faces_dev, F, T, col.device_mesh(d).id,
+                                  wp.mat44d(*np.linalg.inv(M).ravel()), _mat(M[:3, :3]), float(col.extent),
+                                  depth, cen, an, cn])
+            dep = depth.numpy()
+            hit = np.flatnonzero(dep > 0.0)
+            if len(hit):
+                found.append((ci, col, hit, dep[hit], cen.numpy()[hit], an.numpy()[hit], cn.numpy()[hit]))
+        t = self._tick("collision", t)
+        if not found:
+            return None, t
+        y_vert = self._y_vertices.numpy()
+        keys, nodes, phi, coeff, rhs, overlap = [], [], [], [], [], []
+        cell = self._positive["collision_cell"] * self.grid.h
+        tau = self._positive["contact_relaxation"]
+        to_axes = self._axes().T
+        for ci, col, hit, dep, xc, anw, cnw in found:
+            yc = y_vert[self._faces[hit]].mean(axis=1)
+            nd, ph = self.grid.shape_functions(yc)
+            vb = self._collider_velocity(col, xc)
+            vol = np.abs(np.einsum("ij,ij->i", anw, cnw)) * dep
+            keys.append(np.column_stack([np.full(len(hit), ci), np.floor(xc / cell).astype(np.int64)]))
+            nodes.append(nd)
+            phi.append(ph)
+            coeff.append(anw @ to_axes.T)
+            rhs.append(np.einsum("ij,ij->i", anw, vb) - vol / tau)
+            overlap.append(vol)
+        rows = assemble_rows(np.concatenate(keys), np.concatenate(nodes), np.concatenate(phi), np.concatenate(coeff),
+                             np.concatenate(rhs), np.concatenate(overlap), self.grid.n_nodes)
+        t = self._tick("assembly", t)
+        return rows, t
+
+    def _collider_velocity(self, col: Collider, x: np.ndarray) -> np.ndarray:
+        """World velocity [m/s] of a kinematic collider's material at points x (zero for static ones)."""
+        if not getattr(col, "kinematic", False):
+            return np.zeros_like(x)
+        eps = max(1e-6, 1e-3 * self._dt_prev)
+        M0, M1 = col.matrix(self.time), col.matrix(self.time + eps)
+        D = M1 @ np.linalg.inv(M0)
+        return (x @ D[:3, :3].T + D[:3, 3] - x) / eps
+
+
+def _mat(M: np.ndarray) -> wp.mat33d:
+    return wp.mat33d(*np.asarray(M, dtype=np.float64).ravel())
