@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
 
@@ -27,6 +28,18 @@ def test_scene_runs_and_writes_usd(tmp_path, scene, frames):
     assert stage.GetFramesPerSecond() == 30 and stage.GetEndTimeCode() == frames
     meshes = [UsdGeom.Mesh(p) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh) and "colliders" not in str(p.GetPath())]
     assert meshes and all(len(m.GetPointsAttr().GetTimeSamples()) == frames + 1 for m in meshes)
+
+
+@pytest.mark.parametrize("scene", ["eol_spinning_sphere", "eol_plastic_cylinder"])
+def test_eol_scenes_run_and_write_usd(tmp_path, scene):
+    out = tmp_path / f"{scene}.usda"
+    res = run_cli("run", f"scenes/{scene}.py", "-o", str(out), "--frames", "2", "--device", "cpu", "--no-progress")
+    assert res.returncode == 0, res.stderr
+    stage = Usd.Stage.Open(str(out))
+    meshes = [UsdGeom.Mesh(p) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh) and "colliders" not in str(p.GetPath())]
+    assert len(meshes) == 1 and len(meshes[0].GetPointsAttr().GetTimeSamples()) == 3
+    p0, p2 = (np.array(meshes[0].GetPointsAttr().Get(t)) for t in (0, 2))
+    assert np.all(np.isfinite(p2)) and np.abs(p2 - p0).max() > 0.0  # it moved
 
 
 @pytest.mark.parametrize("scene", ["bem_spinning_cube", "bem_squeeze"])
