@@ -27,7 +27,6 @@ import warp as wp
 from wsim.kernels.eol_grid import (
     cell_of,
     corner_gradient,
-    corner_weight,
     gradient_in_cell,
     grid_coordinates,
     local_coordinates,
@@ -57,15 +56,10 @@ def node_velocities(
     F_L: wp.mat33d,
     gravity: wp.vec3d,
     centrifugal: int,
-    mass_floor: wp.float64,
     w: wp.array(dtype=wp.vec3d),
     a: wp.array(dtype=wp.vec3d),
 ):
-    """w_s (current material velocity) and a_s (acceleration) of every node with mass; zero elsewhere.
-
-    Forces are divided by max(m_s, mass_floor): a node whose support barely holds material (a
-    Gauss point in the far corner of its cell) would otherwise be accelerated by the full stress
-    gradient acting on almost no mass, the small-mass instability of grid methods."""
+    """w_s (current material velocity) and a_s (acceleration) of every node with mass; zero elsewhere."""
     s = wp.tid()
     if mass[s] <= wp.float64(0.0):
         w[s] = wp.vec3d()
@@ -74,7 +68,7 @@ def node_velocities(
     y = node_position(s, shape, origin, h)
     Ly = L * y
     w[s] = Ly + c + F_L * v[s]
-    acc = forces[s] / wp.max(mass[s], mass_floor) + gravity - wp.float64(2.0) * (L * v[s])
+    acc = forces[s] / mass[s] + gravity - wp.float64(2.0) * (L * v[s])
     if centrifugal != 0:
         acc = acc - L * Ly
     a[s] = acc
@@ -88,12 +82,11 @@ def velocity_moments(
     shape: wp.vec3i,
     origin: wp.vec3d,
     h: wp.float64,
-    centre: wp.vec3d,
     weighted: int,
     out: wp.array(dtype=wp.float64),
 ):
-    """Moments over nodes with mass (about ``centre``, for conditioning): out[0:16] = sum k yb yb^T,
-    out[16:28] = sum k w0 yb^T, out[28:40] = sum k w1 yb^T with yb = (y - centre, 1) and k = 1
+    """Moments over nodes with mass (y about the centre of mass, the intermediate origin): out[0:16] =
+    sum k yb yb^T, out[16:28] = sum k w0 yb^T, out[28:40] = sum k w1 yb^T with yb = (y, 1) and k = 1
     (the paper's 2-norm, Eq. 23) or k = m_s (``weighted``: the mass norm): everything the
     least-squares split needs, for rigid and affine coordinates alike."""
     chunk = wp.tid()
@@ -105,7 +98,7 @@ def velocity_moments(
     one = wp.float64(1.0)
     for s in range(chunk * per, wp.min(n, (chunk + 1) * per)):
         if mass[s] > wp.float64(0.0):
-            y = node_position(s, shape, origin, h) - centre
+            y = node_position(s, shape, origin, h)
             yb = wp.vec4d(y[0], y[1], y[2], one)
             m = one
             if weighted != 0:
@@ -208,28 +201,6 @@ def extrapolate(v: wp.array3d(dtype=wp.vec3d), mass: wp.array3d(dtype=wp.float64
 
 
 @wp.kernel
-def sample_nodes(
-    field: wp.array3d(dtype=wp.vec3d),
-    origin: wp.vec3d,
-    h: wp.float64,
-    y: wp.array(dtype=wp.vec3d),
-    nodes: wp.array2d(dtype=wp.int32),
-    phi: wp.array2d(dtype=wp.float64),
-):
-    """The 8 flat node indices and trilinear weights of the cell holding each point y (contact rows, Eq. 28)."""
-    p = wp.tid()
-    g = grid_coordinates(field, y[p], origin, h)
-    cell = cell_of(field, g)
-    t = local_coordinates(g, cell)
-    for c in range(8):
-        a = cell[0] + c // 4
-        b = cell[1] + (c // 2) % 2
-        d = cell[2] + c % 2
-        nodes[p, c] = wp.int32((a * field.shape[1] + b) * field.shape[2] + d)
-        phi[p, c] = corner_weight(c, t)
-
-
-@wp.kernel
 def viscous_forces(
     w: wp.array3d(dtype=wp.vec3d),
     origin: wp.vec3d,
@@ -256,17 +227,18 @@ def viscous_forces(
 
 
 @wp.kernel
-def add_acceleration(forces: wp.array(dtype=wp.vec3d), mass: wp.array(dtype=wp.float64), mass_floor: wp.float64,
-                     a: wp.array(dtype=wp.vec3d)):
-    """a_s += f_s / max(m_s, mass_floor) on nodes with mass."""
+def add_acceleration(forces: wp.array(dtype=wp.vec3d), mass: wp.array(dtype=wp.float64), a: wp.array(dtype=wp.vec3d)):
+    """a_s += f_s / m_s on nodes with mass."""
     s = wp.tid()
     if mass[s] > wp.float64(0.0):
-        a[s] = a[s] + forces[s] / wp.max(mass[s], mass_floor)
+        a[s] = a[s] + forces[s] / mass[s]
 
 
 @wp.kernel
 def floor_mass(mass: wp.array(dtype=wp.float64), floor: wp.float64):
-    """m_s <- max(m_s, floor) on nodes with mass (see ``EolBody``'s ``mass_floor``)."""
+    """m_s <- max(m_s, floor) on nodes with mass: a node whose support barely holds material (a
+    Gauss point in the far corner of its cell) is otherwise flung by stress gradients and contact
+    impulses acting on almost no mass, the small-mass instability of grid methods (see ``EolBody``)."""
     s = wp.tid()
     if mass[s] > wp.float64(0.0):
         mass[s] = wp.max(mass[s], floor)

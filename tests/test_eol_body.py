@@ -29,13 +29,14 @@ def rigid_rest(body):
     return body.rest_vertices @ F.T + T
 
 
-@pytest.mark.parametrize("lagrangian", ["rigid", "affine"])
-def test_free_rigid_motion_is_exact_without_fictitious_loads_t4(lagrangian):
+@pytest.mark.parametrize("lagrangian, advection", [("rigid", "semi-lagrangian"), ("affine", "semi-lagrangian"),
+                                                   ("rigid", "bfecc")])
+def test_free_rigid_motion_is_exact_without_fictitious_loads_t4(lagrangian, advection):
     """No forces at all: everything goes to the Lagrangian coordinates, v* = 0, z never moves."""
     w = wsim.World(fps=30, gravity=(0, 0, 0), device="cpu")
     omega = (0.0, 0.0, np.pi) if lagrangian == "rigid" else (0.0, 0.0, 0.0)
     b = w.add(EolBody(sphere(), SOFT, resolution=6, lagrangian=lagrangian, velocity=(0.3, -0.2, 0.1),
-                      angular_velocity=omega, fictitious=False))
+                      angular_velocity=omega, fictitious=False, advection=advection))
     for _ in range(10):
         w.step()
     assert np.abs(b.eulerian_velocity()).max() < 1e-12

@@ -8,17 +8,17 @@ with the dt baked into its operators, EoL with an adaptive dt. The World only as
 
 from __future__ import annotations
 
+import time
 from abc import ABC, abstractmethod
 from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
+import warp as wp
 
 from wsim.errors import InvalidParameter
 from wsim.validate import as_vec3
 
 if TYPE_CHECKING:
-    import warp as wp
-
     from wsim.colliders import Collider
 
 
@@ -70,3 +70,12 @@ class Body(ABC):
     @abstractmethod
     def check_finite(self, frame: int, time: float) -> None:
         """Raise ``SimulationDiverged`` naming this body, the frame and the quantity if state is NaN/Inf."""
+
+    def _tick(self, stage: str, t0: float) -> float:
+        """Add the seconds since t0 to ``self.timings[stage]`` and return now. With ``self.profile``
+        the device (``self._device``) is synchronized first, so GPU time lands in its own stage."""
+        if getattr(self, "profile", False) and not self._device.is_cpu:
+            wp.synchronize_device(self._device)
+        t1 = time.perf_counter()
+        self.timings[stage] += t1 - t0
+        return t1

@@ -332,13 +332,6 @@ class BemBody(Body):
             raise SimulationDiverged(self.name, frame, quantity, time, detail, reason)
 
     # -- the step -----------------------------------------------------------------------------
-    def _tick(self, stage: str, t0: float) -> float:
-        if self.profile and not self._device.is_cpu:
-            wp.synchronize_device(self._device)
-        t1 = time.perf_counter()
-        self.timings[stage] += t1 - t0
-        return t1
-
     def step(self) -> None:
         """One step of length dt (Eqs. 9-12, Sec. 3.2.1, Eq. 11)."""
         u, a_ext, alpha_ext = self.unconstrained_solve()

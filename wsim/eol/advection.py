@@ -12,26 +12,46 @@ from wsim.kernels import eol_advect as ka
 SCHEMES = ("semi-lagrangian", "bfecc")
 
 
-def advect(grid: EolGrid, q: np.ndarray, v: np.ndarray, dt: float, scheme: str = "semi-lagrangian",
-           device=None) -> np.ndarray:
-    """Advect nodal values q (n_nodes, 3) by nodal velocities v (n_nodes, 3) over dt [s].
+def check_scheme(scheme: str, what: str = "advection") -> str:
+    if scheme not in SCHEMES:
+        raise InvalidParameter(f"{what} = {scheme!r} must be one of {', '.join(SCHEMES)}")
+    return scheme
+
+
+def advect_arrays(q: wp.array, v: wp.array, out: wp.array, origin: wp.vec3d, h: wp.float64, dt: float, scheme: str,
+                  scratch: tuple[wp.array, wp.array] | None, device, limit: bool = True) -> None:
+    """out = q advected by v over dt [s]; 3-D vec3d node arrays (``out`` must not alias ``q``).
 
     ``semi-lagrangian`` is first order and diffusive (the paper's scheme, which its time-step rule
-    Eq. 30 assumes); ``bfecc`` costs three semi-Lagrangian passes and is second order on smooth fields.
+    Eq. 30 assumes); ``bfecc`` costs three semi-Lagrangian passes, is second order on smooth
+    fields and needs two ``scratch`` arrays shaped like q. ``limit`` clamps its last pass to the range
+    of q (Selle et al. 2008: no new extrema, which contact needs; it clips smooth peaks, so the
+    max-norm order drops below 2 there).
     """
-    if scheme not in SCHEMES:
-        raise InvalidParameter(f"advection = {scheme!r} must be one of {', '.join(SCHEMES)}")
-    shape = (*grid.node_shape,)
-    origin = wp.vec3d(*grid.origin)
-    h, dtw = wp.float64(grid.h), wp.float64(dt)
+    shape = q.shape
+    dtw = wp.float64(dt)
+    if scheme == "semi-lagrangian":
+        wp.launch(ka.semi_lagrangian, dim=shape, device=device, inputs=[q, v, origin, h, dtw, out])
+        return
+    fwd, back = scratch  # type: ignore[misc]
+    wp.launch(ka.semi_lagrangian, dim=shape, device=device, inputs=[q, v, origin, h, dtw, fwd])
+    wp.launch(ka.semi_lagrangian, dim=shape, device=device, inputs=[fwd, v, origin, h, wp.float64(-dt), back])
+    wp.launch(ka.bfecc_combine, dim=shape, device=device, inputs=[q, back, fwd])
+    if limit:
+        wp.launch(ka.semi_lagrangian_limited, dim=shape, device=device, inputs=[fwd, q, v, origin, h, dtw, out])
+    else:
+        wp.launch(ka.semi_lagrangian, dim=shape, device=device, inputs=[fwd, v, origin, h, dtw, out])
+
+
+def advect(grid: EolGrid, q: np.ndarray, v: np.ndarray, dt: float, scheme: str = "semi-lagrangian",
+           device=None, limit: bool = False) -> np.ndarray:
+    """Advect nodal values q (n_nodes, 3) by nodal velocities v (n_nodes, 3) over dt [s] (host arrays;
+    ``limit`` as in ``advect_arrays``: off here, the plain scheme; ``EolBody`` always limits BFECC)."""
+    check_scheme(scheme)
+    shape = grid.node_shape
     qa = wp.array(np.asarray(q, dtype=np.float64).reshape(*shape, 3), dtype=wp.vec3d, device=device)
     va = wp.array(np.asarray(v, dtype=np.float64).reshape(*shape, 3), dtype=wp.vec3d, device=device)
     out = wp.empty_like(qa)
-    wp.launch(ka.semi_lagrangian, dim=shape, inputs=[qa, va, origin, h, dtw, out], device=device)
-    if scheme == "bfecc":
-        back = wp.empty_like(qa)
-        wp.launch(ka.semi_lagrangian, dim=shape, inputs=[out, va, origin, h, wp.float64(-dt), back], device=device)
-        fixed = wp.empty_like(qa)
-        wp.launch(ka.bfecc_combine, dim=shape, inputs=[qa, back, fixed], device=device)
-        wp.launch(ka.semi_lagrangian, dim=shape, inputs=[fixed, va, origin, h, dtw, out], device=device)
+    scratch = (wp.empty_like(qa), wp.empty_like(qa)) if scheme == "bfecc" else None
+    advect_arrays(qa, va, out, wp.vec3d(*grid.origin), wp.float64(grid.h), dt, scheme, scratch, device, limit)
     return out.numpy().reshape(-1, 3)

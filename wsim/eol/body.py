@@ -41,12 +41,11 @@ from wsim.bem.frame import rodrigues
 from wsim.bem.fundamental import cross_matrix
 from wsim.body import Body
 from wsim.colliders import GroundPlane, MeshCollider
-from wsim.eol.advection import SCHEMES
+from wsim.eol.advection import advect_arrays, check_scheme
 from wsim.eol.contact import ContactRows, assemble_rows, contact_qp
 from wsim.eol.grid import make_grid, material_samples
 from wsim.eol.timestep import adaptive_dt, elastic_dt_limit
 from wsim.errors import InvalidParameter, SimulationDiverged
-from wsim.kernels import eol_advect as ka
 from wsim.kernels import eol_contact as kc
 from wsim.kernels import eol_elastic as ke
 from wsim.kernels import eol_plastic as kp
@@ -104,7 +103,8 @@ class EolBody(Body):
         material: compressible ``ElasticMaterial`` (elastic forces are explicit).
         resolution: grid cells along the longest side of the body's bounding box (>= 4).
         lagrangian: "rigid" (6 DOF), "affine" (12 DOF) or "eulerian" (no Lagrangian motion).
-        advection: "semi-lagrangian" (first order, the paper's) or "bfecc" (second order, 3x cost).
+        advection: "semi-lagrangian" (first order, the paper's) or "bfecc" (second order on smooth
+            fields, 3x cost; limited so it adds no extrema: unlimited, it overshoots at contacts).
         cfl: alpha of Eq. (30), in (0, 1): the Eulerian velocity moves at most this many cells per step.
         plasticity: a :class:`Plasticity`, or None for a purely elastic body.
         padding: empty cells around the body (room for Eulerian deformation).
@@ -165,8 +165,7 @@ class EolBody(Body):
             raise InvalidParameter(f"{p}: EoL elasticity is explicit and needs a compressible material (nu < 0.5)")
         if lagrangian not in LAGRANGIAN:
             raise InvalidParameter(f"{p}: lagrangian = {lagrangian!r} must be one of {', '.join(LAGRANGIAN)}")
-        if advection not in SCHEMES:
-            raise InvalidParameter(f"{p}: advection = {advection!r} must be one of {', '.join(SCHEMES)}")
+        check_scheme(advection, f"{p}: advection")
         cfl_f = finite_number(cfl, f"{p}: cfl")
         if not 0.0 < cfl_f < 1.0:
             raise InvalidParameter(f"{p}: cfl = {cfl_f} must be in (0, 1) (Eq. 30 of first-order advection)")
@@ -335,6 +334,7 @@ class EolBody(Body):
         self._vstar = wp.zeros(n, **vec)
         self._tmp = wp.zeros(n, **vec)
         self._tmp2 = wp.zeros(n, **vec)
+        self._advect_scratch = (wp.zeros(shape, **vec), wp.zeros(shape, **vec)) if self.advection == "bfecc" else None
         self._moments = wp.zeros(40, dtype=wp.float64, device=d)
         self._vmax = wp.zeros(6, dtype=wp.float64, device=d)
         self._energy = wp.zeros(1, dtype=wp.float64, device=d)
@@ -369,6 +369,10 @@ class EolBody(Body):
             if not isinstance(c, (GroundPlane, MeshCollider)):
                 raise InvalidParameter(f"body '{self.name}': unsupported collider {type(c).__name__}")
         self._colliders = list(colliders)
+        if self._colliders:  # per-triangle contact records, only for a scene with colliders
+            nf = len(self._faces)
+            self._contact_scratch = (wp.zeros(nf, dtype=wp.float64, device=self._device),
+                                     *(wp.zeros(nf, dtype=wp.vec3d, device=self._device) for _ in range(3)))
 
     def advance(self, t0: float, t1: float) -> None:
         """Adaptive steps (Eq. 33) from the body's time to t1, each capped by the frame end, the
@@ -392,13 +396,6 @@ class EolBody(Body):
             raise SimulationDiverged(self.name, frame, quantity, time_, detail, reason)
 
     # -- the step ------------------------------------------------------------------------------
-    def _tick(self, stage: str, t0: float) -> float:
-        if self.profile and not self._device.is_cpu:
-            wp.synchronize_device(self._device)
-        t1 = time.perf_counter()
-        self.timings[stage] += t1 - t0
-        return t1
-
     def _F_L(self) -> np.ndarray:
         """The Lagrangian deformation gradient in the velocity axes: A (affine), I (rigid, Eulerian)."""
         return self._F if self.lagrangian == "affine" else np.eye(3)
@@ -439,7 +436,7 @@ class EolBody(Body):
         wp.launch(ks.node_velocities, dim=n, device=d,
                   inputs=[self._v, self._mass, self._forces, self._shape, self._origin, self._h, _mat(L), wp.vec3d(*c),
                           _mat(self._F_L()), wp.vec3d(*g_axes), int(self.fictitious and self.lagrangian == "rigid"),
-                          wp.float64(0.0), self._w, self._a])
+                          self._w, self._a])
         if self.damping > 0.0:
             shape = self.grid.node_shape
             self._tmp.zero_()
@@ -447,7 +444,7 @@ class EolBody(Body):
                       inputs=[self._w.reshape(shape), self._origin, self._h, self._y_pts, self._vol,
                               _mat(np.linalg.inv(self._F_L())), wp.float64(self.damping), self._tmp.reshape(shape)])
             wp.launch(ks.add_acceleration, dim=n, device=d,
-                      inputs=[self._tmp, self._mass, wp.float64(0.0), self._a])
+                      inputs=[self._tmp, self._mass, self._a])
         t = self._tick("forces", t)
         # 2-3. collision, assembly, QP
         dt_guess = min(cap, 2.0 * self._dt_prev)
@@ -519,7 +516,7 @@ class EolBody(Body):
             return z, z
         self._moments.zero_()
         wp.launch(ks.velocity_moments, dim=ks.CHUNKS, device=self._device,
-                  inputs=[w0, w1, self._mass, self._shape, self._origin, self._h, wp.vec3d(0.0, 0.0, 0.0), int(self.split == "mass"), self._moments])
+                  inputs=[w0, w1, self._mass, self._shape, self._origin, self._h, int(self.split == "mass"), self._moments])
         mom = self._moments.numpy()
         C = mom[:16].reshape(4, 4)
         self._m_total = C[3, 3] if self.split == "mass" else float(np.sum(self._mass.numpy()))
@@ -554,21 +551,9 @@ class EolBody(Body):
         self._advect(self._tmp2, self._v, dt, self._z)
 
     def _advect(self, q: wp.array, vel: wp.array, dt: float, out: wp.array) -> None:
-        d = self._device
         shape = self.grid.node_shape
-        q3, v3, o3 = q.reshape(shape), vel.reshape(shape), out.reshape(shape)
-        dtw = wp.float64(dt)
-        if self.advection == "semi-lagrangian":
-            if q.ptr == out.ptr:
-                q3 = wp.clone(q3)
-            wp.launch(ka.semi_lagrangian, dim=shape, device=d, inputs=[q3, v3, self._origin, self._h, dtw, o3])
-            return
-        fwd = wp.empty_like(q3)
-        back = wp.empty_like(q3)
-        wp.launch(ka.semi_lagrangian, dim=shape, device=d, inputs=[q3, v3, self._origin, self._h, dtw, fwd])
-        wp.launch(ka.semi_lagrangian, dim=shape, device=d, inputs=[fwd, v3, self._origin, self._h, wp.float64(-dt), back])
-        wp.launch(ka.bfecc_combine, dim=shape, device=d, inputs=[q3, back, fwd])
-        wp.launch(ka.semi_lagrangian, dim=shape, device=d, inputs=[fwd, v3, self._origin, self._h, dtw, o3])
+        advect_arrays(q.reshape(shape), vel.reshape(shape), out.reshape(shape), self._origin, self._h, dt,
+                      self.advection, self._advect_scratch, self._device)
 
     def _integrate_pose(self, dt: float, L: np.ndarray, c: np.ndarray) -> None:
         if self.lagrangian == "rigid":
@@ -595,10 +580,7 @@ class EolBody(Body):
             return None, t
         d = self._device
         nf = len(self._faces)
-        depth = wp.zeros(nf, dtype=wp.float64, device=d)
-        cen = wp.zeros(nf, dtype=wp.vec3d, device=d)
-        an = wp.zeros(nf, dtype=wp.vec3d, device=d)
-        cn = wp.zeros(nf, dtype=wp.vec3d, device=d)
+        depth, cen, an, cn = self._contact_scratch
         F, T = _mat(self._F), wp.vec3d(*self._T)
         found = []
         for ci, col in enumerate(self._colliders):
