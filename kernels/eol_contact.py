@@ -1,80 +1,211 @@
-"""Warp kernels that find the surface of an EoL body inside a collider (Fan et al. Sec. 3.5, Eqs. 27-28).
+"""Warp kernels that assemble the contact rows of an EoL body against a collider (Fan et al. Sec. 3.5, Eqs. 27-28).
 
 The contact constraint of Eq. (27) asks the overlap volume Omega of the body A and a collider B
 not to grow: d vol(Omega)/dt = int_{Gamma_A in Omega} v_A . n_A dGamma + int_{Gamma_B in Omega}
 v_B . n_B dGamma <= 0. A collider moves rigidly (a divergence-free velocity field), so the flux of
 v_B through the closed boundary of Omega vanishes and the collider's term equals
 -int_{Gamma_A in Omega} v_B . n_A: the constraint only needs the body's own surface inside the
-collider, int_{Gamma_A in Omega} (v_A - v_B) . n_A <= 0. It is integrated with one point per
-surface triangle (its centroid, weight its area): this kernel reports, per triangle, whether the
-centroid is inside the collider, how deep, the area-weighted outward normal and the collider's
-outward normal there. Positions come from the tracked intermediate vertices y and the Lagrangian
-map x = F y + T (F = R rigid, A affine). Collider meshes are float32 (Warp BVH).
+collider, int_{Gamma_A in Omega} (v_A - v_B) . n_A <= 0.
+
+It is integrated with surface samples: points of the surface triangles given by barycentric
+coordinates, each with a share of its triangle's area (one centroid per triangle, or the centroids
+of a k x k subdivision of a triangle wider than a grid cell). Rows (Eq. 28) are one per collider
+and collision cell: a block of ``block``^3 cells of the body's grid (the collision grid of Sec.
+3.5; against rigid colliders the intermediate grid is the spatial grid carried by the Lagrangian
+map). A row's support is then the (block + 1)^3 nodes of its block, so the kernels accumulate each
+row's J coefficients, right side and overlap into a fixed slot per row with atomics, and
+``compact_rows`` packs the rows that received samples (clearing their slots for the next step):
+only those travel to the host. Per row:
+
+    J: 3 (block + 1)^3 coefficients  int_{Gamma_A in Omega, block} Phi_s n_A dGamma  (velocity axes)
+    b: sum of n_A . v_B - overlap / tau  (collider flux minus relaxation of existing overlap)
+    overlap volume: sum of |n_A . n_B| depth dGamma
+
+Positions come from the tracked intermediate vertices y and the Lagrangian map x = F y + T
+(F = R rigid, A affine). Collider meshes are float32 (Warp BVH); everything else is float64.
 """
 
 from __future__ import annotations
 
 import warp as wp
 
+from wsim.kernels.eol_grid import corner_weight
+
+
+@wp.struct
+class RowLayout:
+    """Where a sample's contribution goes: the body's grid (origin, h, cells) and the collision grid
+    (``block`` cells per collision cell, ``ccells`` collision cells per axis)."""
+
+    origin: wp.vec3d
+    h: wp.float64
+    cells: wp.vec3i
+    block: int
+    ccells: wp.vec3i
+
 
 @wp.func
-def triangle_world(y: wp.array(dtype=wp.vec3d), tri: wp.vec3i, F: wp.mat33d, T: wp.vec3d):
-    x0 = F * y[tri[0]] + T
-    x1 = F * y[tri[1]] + T
-    x2 = F * y[tri[2]] + T
-    third = wp.float64(1.0) / wp.float64(3.0)
-    return (x0 + x1 + x2) * third, wp.float64(0.5) * wp.cross(x1 - x0, x2 - x0)
+def sample_world(y: wp.array(dtype=wp.vec3d), tri: wp.vec3i, bary: wp.vec3d, share: wp.float64, F: wp.mat33d,
+                 T: wp.vec3d):
+    """The sample's intermediate point, world point and area-weighted normal (its share of the triangle)."""
+    y0 = y[tri[0]]
+    y1 = y[tri[1]]
+    y2 = y[tri[2]]
+    yp = bary[0] * y0 + bary[1] * y1 + bary[2] * y2
+    x0 = F * y0 + T
+    an = wp.float64(0.5) * share * wp.cross(F * y1 + T - x0, F * y2 + T - x0)
+    return yp, F * yp + T, an
+
+
+@wp.func
+def accumulate_row(acc: wp.array2d(dtype=wp.float64), flag: wp.array(dtype=wp.int32), layout: RowLayout,
+                   collider: int, yp: wp.vec3d, coeff: wp.vec3d, rhs: wp.float64, overlap: wp.float64):
+    """Add one sample to its row: Phi_s(yp) coeff on the 8 nodes of its grid cell, rhs and overlap."""
+    g = (yp - layout.origin) / layout.h
+    cell = wp.vec3i()
+    t = wp.vec3d()
+    for d in range(3):
+        gd = wp.clamp(g[d], wp.float64(0.0), wp.float64(layout.cells[d]))
+        cell[d] = wp.min(int(gd), layout.cells[d] - 1)
+        t[d] = gd - wp.float64(cell[d])
+    k = layout.block
+    cc = wp.vec3i(cell[0] // k, cell[1] // k, cell[2] // k)
+    nc = layout.ccells
+    row = ((collider * nc[0] + cc[0]) * nc[1] + cc[1]) * nc[2] + cc[2]
+    flag[row] = 1
+    for c in range(8):
+        li = cell[0] + c // 4 - k * cc[0]
+        lj = cell[1] + (c // 2) % 2 - k * cc[1]
+        lk = cell[2] + c % 2 - k * cc[2]
+        slot = 3 * ((li * (k + 1) + lj) * (k + 1) + lk)
+        phi = corner_weight(c, t)
+        for d in range(3):
+            wp.atomic_add(acc, row, slot + d, phi * coeff[d])
+    n = acc.shape[1]
+    wp.atomic_add(acc, row, n - 2, rhs)
+    wp.atomic_add(acc, row, n - 1, overlap)
+
+
+@wp.func
+def add_sample(acc: wp.array2d(dtype=wp.float64), flag: wp.array(dtype=wp.int32), layout: RowLayout,
+               collider: int, yp: wp.vec3d, x: wp.vec3d, an: wp.vec3d, cn: wp.vec3d, depth: wp.float64,
+               to_axes: wp.mat33d, G: wp.mat33d, g: wp.vec3d, inv_tau: wp.float64):
+    """A sample inside the collider: coefficient n_A in the velocity axes, right side n_A . v_B(x) -
+    overlap / tau with the collider's velocity v_B = G x + g, overlap |n_A . n_B| depth."""
+    vol = wp.abs(wp.dot(an, cn)) * depth
+    accumulate_row(acc, flag, layout, collider, yp, to_axes * an, wp.dot(an, G * x + g) - vol * inv_tau, vol)
 
 
 @wp.kernel
-def plane_contacts(
+def plane_rows(
     y: wp.array(dtype=wp.vec3d),
     faces: wp.array(dtype=wp.vec3i),
+    sample_face: wp.array(dtype=wp.int32),
+    sample_bary: wp.array(dtype=wp.vec3d),
+    sample_share: wp.array(dtype=wp.float64),
     F: wp.mat33d,
     T: wp.vec3d,
+    to_axes: wp.mat33d,
+    layout: RowLayout,
+    inv_tau: wp.float64,
     normal: wp.vec3d,
     height: wp.float64,
-    depth: wp.array(dtype=wp.float64),
-    centroid: wp.array(dtype=wp.vec3d),
-    area_normal: wp.array(dtype=wp.vec3d),
-    collider_normal: wp.array(dtype=wp.vec3d),
+    collider: int,
+    acc: wp.array2d(dtype=wp.float64),
+    flag: wp.array(dtype=wp.int32),
 ):
-    """Triangles whose centroid lies below the plane normal . x = height (depth > 0)."""
-    f = wp.tid()
-    xc, an = triangle_world(y, faces[f], F, T)
-    centroid[f] = xc
-    area_normal[f] = an
-    collider_normal[f] = normal
-    depth[f] = wp.max(height - wp.dot(normal, xc), wp.float64(0.0))
+    """Samples below the (static) plane normal . x = height."""
+    i = wp.tid()
+    yp, x, an = sample_world(y, faces[sample_face[i]], sample_bary[i], sample_share[i], F, T)
+    depth = height - wp.dot(normal, x)
+    if depth > wp.float64(0.0):
+        add_sample(acc, flag, layout, collider, yp, x, an, normal, depth, to_axes, wp.mat33d(), wp.vec3d(), inv_tau)
 
 
 @wp.kernel
-def mesh_contacts(
+def mesh_rows(
     y: wp.array(dtype=wp.vec3d),
     faces: wp.array(dtype=wp.vec3i),
+    sample_face: wp.array(dtype=wp.int32),
+    sample_bary: wp.array(dtype=wp.vec3d),
+    sample_share: wp.array(dtype=wp.float64),
     F: wp.mat33d,
     T: wp.vec3d,
+    to_axes: wp.mat33d,
+    layout: RowLayout,
+    inv_tau: wp.float64,
     mesh: wp.uint64,
     to_local: wp.mat44d,
     rotation: wp.mat33d,
     max_dist: float,
-    depth: wp.array(dtype=wp.float64),
-    centroid: wp.array(dtype=wp.vec3d),
-    area_normal: wp.array(dtype=wp.vec3d),
-    collider_normal: wp.array(dtype=wp.vec3d),
+    G: wp.mat33d,
+    g: wp.vec3d,
+    collider: int,
+    acc: wp.array2d(dtype=wp.float64),
+    flag: wp.array(dtype=wp.int32),
 ):
-    """Triangles whose centroid lies inside a closed collider mesh (winding-sign query; depth > 0)."""
-    f = wp.tid()
-    xc, an = triangle_world(y, faces[f], F, T)
-    centroid[f] = xc
-    area_normal[f] = an
-    depth[f] = wp.float64(0.0)
-    collider_normal[f] = wp.vec3d()
-    pl = to_local * wp.vec4d(xc[0], xc[1], xc[2], wp.float64(1.0))
+    """Samples inside a closed collider mesh (winding-sign query) moving with v_B = G x + g."""
+    i = wp.tid()
+    yp, x, an = sample_world(y, faces[sample_face[i]], sample_bary[i], sample_share[i], F, T)
+    pl = to_local * wp.vec4d(x[0], x[1], x[2], wp.float64(1.0))
     p = wp.vec3(float(pl[0]), float(pl[1]), float(pl[2]))
     q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
     if q.result and q.sign < 0.0:
         closest = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
         n = wp.mesh_eval_face_normal(mesh, q.face)
-        depth[f] = wp.float64(wp.length(closest - p))
-        collider_normal[f] = rotation * wp.vec3d(wp.float64(n[0]), wp.float64(n[1]), wp.float64(n[2]))
+        cn = rotation * wp.vec3d(wp.float64(n[0]), wp.float64(n[1]), wp.float64(n[2]))
+        add_sample(acc, flag, layout, collider, yp, x, an, cn, wp.float64(wp.length(closest - p)), to_axes, G, g,
+                   inv_tau)
+
+
+@wp.kernel
+def compact_rows(
+    acc: wp.array2d(dtype=wp.float64),
+    flag: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+    row_id: wp.array(dtype=wp.int32),
+    packed: wp.array2d(dtype=wp.float64),
+):
+    """Pack the rows that received samples (in no set order: the host sorts them by id) and clear
+    their slots, so the accumulator is zero for the next step without a full memset."""
+    r = wp.tid()
+    if flag[r] == 0:
+        return
+    slot = wp.atomic_add(count, 0, 1)
+    row_id[slot] = r
+    for q in range(acc.shape[1]):
+        packed[slot, q] = acc[r, q]
+        acc[r, q] = wp.float64(0.0)
+    flag[r] = 0
+
+
+@wp.kernel
+def gather_nodes(
+    nodes: wp.array(dtype=wp.int32),
+    mass: wp.array(dtype=wp.float64),
+    w: wp.array(dtype=wp.vec3d),
+    a: wp.array(dtype=wp.vec3d),
+    out: wp.array2d(dtype=wp.float64),
+):
+    """(m_s, w_s, a_s) of the nodes the contact rows touch: the QP only needs these."""
+    i = wp.tid()
+    s = nodes[i]
+    out[i, 0] = mass[s]
+    for d in range(3):
+        out[i, 1 + d] = w[s][d]
+        out[i, 4 + d] = a[s][d]
+
+
+@wp.kernel
+def scatter_nodes(
+    nodes: wp.array(dtype=wp.int32),
+    delta: wp.array2d(dtype=wp.float64),
+    w: wp.array(dtype=wp.vec3d),
+    a: wp.array(dtype=wp.vec3d),
+):
+    """w_s += dw0_s and a_s += dw1_s on the touched nodes: the QP's correction -M^-1 J^T lambda_i
+    (Eq. 31), applied in place to the unconstrained w and a, which become w_0 and w_1."""
+    i = wp.tid()
+    s = nodes[i]
+    w[s] = w[s] + wp.vec3d(delta[i, 0], delta[i, 1], delta[i, 2])
+    a[s] = a[s] + wp.vec3d(delta[i, 3], delta[i, 4], delta[i, 5])

@@ -11,9 +11,11 @@ import numpy as np
 import pytest
 import trimesh
 
+import warp as wp
+
 import wsim
 from wsim.eol import EolBody, Plasticity
-from wsim.eol.contact import ContactRows, contact_qp, solve_lcp
+from wsim.eol.contact import ContactRows, contact_qp, nnls_lcp, solve_lcp
 
 SOFT = wsim.ElasticMaterial(E=1e5, nu=0.3, rho=1000.0)
 
@@ -83,20 +85,24 @@ def drop(fps=30, frames=60, damping=1000.0, **kw):
     log = []
     for _ in range(frames):
         w.step()
-        log.append((w.time, b.points()[:, 1].min(), b.linear_momentum()))
+        log.append((w.time, np.sort(b.points()[:, 1])[:20], b.linear_momentum()))
     return w, b, P0, log
 
 
 def test_drop_on_ground_comes_to_rest_momentum_by_gravity_and_contact_t6():
     w, b, P0, log = drop(frames=75)
-    t, ymin, P = log[-1]
+    t, lowest, P = log[-1]
     g = np.array([0.0, -9.81, 0.0])
     impulse = b.contact_impulse
     assert impulse[1] > 0.5 * b.mass * 9.81 * t  # the ground carried the weight for a good while
     resid = P - P0 - b.mass * g * t - impulse
     assert np.abs(resid).max() < 0.03 * np.linalg.norm(impulse)
     assert abs(P[1]) / b.mass < 0.1  # at rest (1.6 m/s at impact)
-    assert ymin > -0.05 * 0.5 and ymin < 0.02  # resting on the ground, within 5 % of the radius
+    # resting on the ground: its lowest vertices within 2 % of the radius of the plane; no vertex
+    # ever deeper than 10 % of the radius (the volume constraint binds the surface per collision
+    # cell, so a single vertex can dip between samples while the cell's overlap is pushed out)
+    assert abs(lowest.mean()) < 0.02 * 0.5
+    assert min(entry[1][0] for entry in log) > -0.1 * 0.5
     assert np.abs(impulse[[0, 2]]).max() < 0.01 * impulse[1]  # frictionless, along the normal
     assert b.volume() == pytest.approx(sphere().volume, rel=0.05)
 
@@ -124,13 +130,12 @@ def test_dt_dips_in_contact_and_grows_back_to_the_frame_fig8():
 def test_contact_qp_kkt_t7(rng):
     """The active-set solution satisfies the KKT conditions of Eq. (29) and matches a projected
     Gauss-Seidel reference; w0 + dt w1 reproduces the QP solution at the guessed dt."""
-    import scipy.sparse as sp
-
     n, m = 40, 12
-    J = sp.csr_matrix(rng.standard_normal((m, 3 * n)) * (rng.random((m, 3 * n)) < 0.2))
+    J = rng.standard_normal((m, 3 * n)) * (rng.random((m, 3 * n)) < 0.2)
     inv_mass = 1.0 / rng.uniform(0.5, 2.0, 3 * n)
     w, a = rng.standard_normal(3 * n), rng.standard_normal(3 * n)
-    rows = ContactRows(J=J, b=0.1 * rng.standard_normal(m), collider=np.zeros(m, int), overlap=np.zeros(m))
+    rows = ContactRows(J=J, b=0.1 * rng.standard_normal(m), collider=np.zeros(m, int), overlap=np.zeros(m),
+                       nodes=np.arange(n), ids=np.arange(m))
     dt = 0.01
     sol = contact_qp(rows, inv_mass, w, a, dt)
     w_qp = sol.w0 + dt * sol.w1
@@ -140,7 +145,7 @@ def test_contact_qp_kkt_t7(rng):
     assert lam.min() > -1e-12
     assert np.abs(lam * (Jw - rows.b)).max() < 1e-9
     np.testing.assert_allclose(w_qp, w + dt * a - inv_mass * (J.T @ lam), atol=1e-12)  # stationarity
-    S = (J.multiply(inv_mass[None, :]) @ J.T).toarray()
+    S = (J * inv_mass[None, :]) @ J.T
     r = J @ (w + dt * a) - rows.b
     ref = np.zeros(m)
     for _ in range(5000):
@@ -150,6 +155,81 @@ def test_contact_qp_kkt_t7(rng):
     np.testing.assert_allclose(lam, ref, atol=1e-7 * max(1.0, np.abs(ref).max()))
     lam2, _ = solve_lcp(S, r)
     np.testing.assert_allclose(lam2, ref, atol=1e-7 * max(1.0, np.abs(ref).max()))
+    np.testing.assert_allclose(nnls_lcp(S, r), ref, atol=1e-7 * max(1.0, np.abs(ref).max()))  # the fallback
+
+
+@pytest.mark.parametrize("block", [1, 2])
+def test_contact_rows_match_a_host_assembly(device, block):
+    """The device assembly of Eq. (28) (samples binned into collision cells, atomics, compaction)
+    equals a direct numpy evaluation: a rotated sphere sunk into a tilted plane and into a box
+    moving at (0.3, -1, 0.2) m/s (its flux enters b)."""
+    from wsim.eol.contact import surface_samples
+
+    vel = np.array([0.3, -1.0, 0.2])
+
+    def box_at(t):
+        M = np.eye(4)
+        M[:3, 3] = np.array([0.0, 0.95, 0.0]) + vel * t
+        return M
+
+    nrm = np.array([0.1, 1.0, -0.05]) / np.linalg.norm([0.1, 1.0, -0.05])
+    plane = wsim.GroundPlane(0.1, normal=nrm)
+    box = wsim.MeshCollider(trimesh.creation.box(extents=(2.0, 0.4, 2.0)), transform=box_at, name="box")
+    rot = trimesh.transformations.rotation_matrix(0.4, [1, 2, 3])[:3, :3]
+    ball = sphere((0.0, 0.5, 0.0))  # turned, so no sample sits on a cell face (a tie between two rows)
+    ball.apply_transform(trimesh.transformations.rotation_matrix(0.7, [3, -1, 2], point=(0.0, 0.5, 0.0)))
+    b = EolBody(ball, SOFT, resolution=8, rotation=rot, collision_block=block)
+    b.bind(wp.get_device(device), np.zeros(3), np.array([0.0, 1.0, 0.0]))
+    b.attach_colliders([plane, box])
+    rows, _ = b._contact_rows(0.0)
+    # the reference, sample by sample
+    F, T = b.frame
+    y = b.intermediate_vertices()
+    face, bary, share = surface_samples(b._z_vertices, b.faces, b.grid.h)
+    tri = y[b.faces[face]]
+    yp = np.einsum("pk,pkd->pd", bary, tri)
+    xt = tri @ F.T + T
+    x = yp @ F.T + T
+    an = 0.5 * share[:, None] * np.cross(xt[:, 1] - xt[:, 0], xt[:, 2] - xt[:, 0])
+    ref: dict = {}
+    g = (yp - b.grid.origin) / b.grid.h
+    cell = np.minimum(np.floor(np.clip(g, 0, b.grid.cells)).astype(int), np.array(b.grid.cells) - 1)
+    nodes, phi = b.grid.shape_functions(yp)
+    centre = box_at(0.0)[:3, 3]
+    half = np.array([1.0, 0.2, 1.0])
+    for ci in range(2):
+        if ci == 0:
+            depth = 0.1 - x @ nrm
+            cn = np.broadcast_to(nrm, x.shape)
+            vb = np.zeros(3)
+        else:
+            gap = half - np.abs(x - centre)  # inside where all > 0; nearest face: the smallest gap
+            depth = np.where(np.all(gap > 0, axis=1), gap.min(axis=1), 0.0)
+            axis = gap.argmin(axis=1)
+            cn = np.zeros_like(x)
+            cn[np.arange(len(x)), axis] = np.sign((x - centre)[np.arange(len(x)), axis])
+            vb = vel
+        for p in np.flatnonzero(depth > 0):
+            vol = abs(an[p] @ cn[p]) * depth[p]
+            key = (ci, *(cell[p] // block))
+            J, bb, ov = ref.setdefault(key, [{}, 0.0, 0.0])
+            for nd, w in zip(nodes[p], phi[p]):
+                J[nd] = J.get(nd, 0.0) + w * (F.T @ an[p])
+            ref[key][1] = bb + an[p] @ vb - vol / 0.05
+            ref[key][2] = ov + vol
+    assert rows.m == len(ref) and len({k[0] for k in ref}) == 2
+    keys = sorted(ref)
+    np.testing.assert_array_equal(rows.collider, [k[0] for k in keys])
+    Jg = rows.J.reshape(rows.m, -1, 3)
+    scale = np.abs(rows.J).max()
+    for r, key in enumerate(keys):
+        J, bb, ov = ref[key]
+        got = {nd: Jg[r, i] for i, nd in enumerate(rows.nodes) if np.any(Jg[r, i] != 0.0)}
+        assert set(got) == set(J)
+        for nd in J:
+            np.testing.assert_allclose(got[nd], J[nd], rtol=1e-9, atol=1e-12 * scale)
+        assert rows.b[r] == pytest.approx(bb, rel=1e-3, abs=1e-9)  # depth from float32 collider geometry
+        assert rows.overlap[r] == pytest.approx(ov, rel=1e-3, abs=1e-12)
 
 
 def squeeze(plasticity):

@@ -36,7 +36,7 @@ PAPER_TABLE_II = {"forces": 2.0e-3, "collision": 15.7e-3, "assembly": 2.9e-3, "l
                   "total": 96.6e-3, "note": "2 spheres of 32^3, GTX 580 (per step, both bodies)"}
 
 
-def make_world(case: str, resolution: int, device: str, lagrangian: str, profile: bool):
+def make_world(case: str, resolution: int, device: str, lagrangian: str, profile: bool, **body_kw):
     gravity = (0.0, -9.81, 0.0) if case == "contact" else (0.0, 0.0, 0.0)
     world = wsim.World(fps=30, gravity=gravity, device=device)
     if case == "contact":
@@ -45,17 +45,17 @@ def make_world(case: str, resolution: int, device: str, lagrangian: str, profile
     ball.apply_translation((0.0, 0.3 if case == "contact" else 1.0, 0.0))
     body = world.add(wsim.EolBody(ball, wsim.ElasticMaterial(E=5e4, nu=0.3, rho=500.0), resolution=resolution,
                                   lagrangian=lagrangian, angular_velocity=(0.0, np.pi, 0.0), damping=20.0,
-                                  profile=profile))
+                                  profile=profile, **body_kw))
     return world, body
 
 
-def run_case(case: str, resolution: int, device: str, lagrangian: str, steps: int) -> dict:
+def run_case(case: str, resolution: int, device: str, lagrangian: str, steps: int, **body_kw) -> dict:
     sync = (lambda: wp.synchronize_device(device))
     out: dict = {"case": case, "resolution": resolution, "lagrangian": lagrangian, "device": str(wp.get_device(device)),
-                 "device_name": wp.get_device(device).name}
+                 "device_name": wp.get_device(device).name, **body_kw}
     for profile in (False, True):
         t0 = time.perf_counter()
-        world, body = make_world(case, resolution, device, lagrangian, profile)
+        world, body = make_world(case, resolution, device, lagrangian, profile, **body_kw)
         setup = time.perf_counter() - t0
         world.step()  # compile, settle into contact
         world.step()
@@ -74,7 +74,14 @@ def run_case(case: str, resolution: int, device: str, lagrangian: str, steps: in
             dts = np.array([r.dt for r in body.history[n0:]])
             rows = np.array([r.rows for r in body.history[n0:]])
             out.update(dt_mean=float(dts.mean()), dt_min=float(dts.min()), dt_max=float(dts.max()),
-                       dt_cap=float(body.dt_elastic), rows_mean=float(rows.mean()), rows_max=int(rows.max()))
+                       dt_cap=float(body.dt_elastic), rows_mean=float(rows.mean()), rows_max=int(rows.max()),
+                       active_mean=float(np.mean([r.active for r in body.history[n0:]])),
+                       qp_iterations_mean=float(np.mean([r.qp_iterations for r in body.history[n0:]])),
+                       qp_fallbacks=int(sum(r.qp_iterations > 50 for r in body.history[n0:])),
+                       # contact accuracy: overlap with the ground relative to the body's volume,
+                       # and how deep the lowest surface vertex sits [m] (h for scale)
+                       overlap_rel_mean=float(np.mean([r.overlap for r in body.history[n0:]]) / body.volume()),
+                       lowest_vertex=float(body.points()[:, 1].min()), h=float(body.grid.h))
         else:
             out["stage_seconds_per_step"] = {k: body.timings[k] / n for k in STAGES}
             out["profiled_seconds_per_step"] = wall / n
@@ -98,11 +105,17 @@ def main() -> None:
     ap.add_argument("--lagrangian", default="rigid")
     ap.add_argument("--device", default=None)
     ap.add_argument("--steps", type=int, default=50)
+    ap.add_argument("--collision-block", default="1", help="comma list of EolBody collision_block values [cells]")
+    ap.add_argument("--contact-spacing", type=float, default=1.0, help="EolBody contact_spacing [h]")
     args = ap.parse_args()
     device = args.device or ("cuda:0" if wp.get_cuda_device_count() else "cpu")
     for res in (int(r) for r in args.resolution.split(",")):
         for case in args.cases.split(","):
-            print(json.dumps(run_case(case, res, device, args.lagrangian, args.steps)), flush=True)
+            blocks = [int(c) for c in args.collision_block.split(",")] if case == "contact" else [1]
+            for block in blocks:
+                out = run_case(case, res, device, args.lagrangian, args.steps, collision_block=block,
+                               contact_spacing=args.contact_spacing)
+                print(json.dumps(out), flush=True)
 
 
 if __name__ == "__main__":

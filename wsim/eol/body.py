@@ -42,7 +42,7 @@ from wsim.bem.fundamental import cross_matrix
 from wsim.body import Body
 from wsim.colliders import GroundPlane, MeshCollider
 from wsim.eol.advection import advect_arrays, check_scheme
-from wsim.eol.contact import ContactRows, assemble_rows, contact_qp
+from wsim.eol.contact import ContactRows, block_nodes, contact_qp, rows_from_blocks, surface_samples
 from wsim.eol.grid import make_grid, material_samples
 from wsim.eol.timestep import adaptive_dt, elastic_dt_limit
 from wsim.errors import InvalidParameter, SimulationDiverged
@@ -86,13 +86,17 @@ class Plasticity:
 
 @dataclass
 class StepRecord:
-    """One EoL step: its start time and dt [s], contact rows and active rows, LS residual max |v*| [m/s]."""
+    """One EoL step: its start time and dt [s], contact rows and active rows, LS residual max |v*| [m/s],
+    the overlap volume with the colliders at its start [m^3], the QP's active-set iterations (51:
+    the active set cycled and the NNLS fallback solved it)."""
 
     time: float
     dt: float
     rows: int
     active: int
     v_star: float
+    overlap: float = 0.0
+    qp_iterations: int = 0
 
 
 class EolBody(Body):
@@ -111,7 +115,12 @@ class EolBody(Body):
         dt_max: cap on the step [s] besides the frame and the elastic limit (None: none).
         elastic_safety: the elastic cap is this fraction of h / c1 (P-wave cell crossing time).
         quadrature: material points per cell axis (Gauss-Legendre).
-        collision_cell: edge of the spatial collision grid that bins contact rows, in cells h.
+        collision_block: edge of a collision cell, in cells of the body's grid (an integer >= 1): one
+            contact row per collider and collision cell. Larger blocks: fewer rows and a cheaper QP,
+            coarser resolution of the overlap along the surface (``tools/bench_eol.py`` measures both).
+        contact_spacing: the largest spacing of the surface's contact samples, in cells h: a triangle
+            wider than this is subdivided (one sample per sub-triangle), so a coarse mesh cannot
+            slip through a collider between its triangle centroids.
         contact_relaxation: time [s] over which overlap already present is pushed out (b -= vol / tau).
         track_tol: Algorithm 2 tolerance, as a fraction of h.
         fictitious: include the centrifugal and Coriolis loads on the Eulerian velocities.
@@ -148,7 +157,8 @@ class EolBody(Body):
         dt_max: float | None = None,
         elastic_safety: float = 0.5,
         quadrature: int = 2,
-        collision_cell: float = 1.0,
+        collision_block: int = 1,
+        contact_spacing: float = 1.0,
         contact_relaxation: float = 0.05,
         track_tol: float = 1e-9,
         fictitious: bool = True,
@@ -174,7 +184,8 @@ class EolBody(Body):
         self.split = split
         if plasticity is not None and not isinstance(plasticity, Plasticity):
             raise InvalidParameter(f"{p}: plasticity must be a wsim.eol.Plasticity or None")
-        for value, what, lo in ((padding, "padding", 1), (quadrature, "quadrature", 1)):
+        for value, what, lo in ((padding, "padding", 1), (quadrature, "quadrature", 1),
+                                (collision_block, "collision_block", 1)):
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lo:
                 raise InvalidParameter(f"{p}: {what} = {value!r} must be an integer >= {lo}")
         if dt_max is not None:
@@ -182,8 +193,9 @@ class EolBody(Body):
             if dt_max <= 0.0:
                 raise InvalidParameter(f"{p}: dt_max = {dt_max} s must be > 0")
         self._positive = {k: finite_number(v, f"{p}: {k}") for k, v in
-                          (("elastic_safety", elastic_safety), ("collision_cell", collision_cell),
-                           ("contact_relaxation", contact_relaxation), ("track_tol", track_tol))}
+                          (("elastic_safety", elastic_safety),
+                           ("contact_relaxation", contact_relaxation), ("track_tol", track_tol),
+                           ("contact_spacing", contact_spacing))}
         for k, v in self._positive.items():
             if v <= 0.0:
                 raise InvalidParameter(f"{p}: {k} = {v} must be > 0")
@@ -202,6 +214,7 @@ class EolBody(Body):
         self.dt_max = dt_max
         self.fictitious = bool(fictitious)
         self.profile = bool(profile)
+        self.collision_block = int(collision_block)
         self._R0 = as_rotation(rotation, f"{p}: rotation")
         self._faces = faces.astype(np.int32)
         samples = material_samples(self.grid, vertices, faces, per_axis=int(quadrature))
@@ -360,6 +373,7 @@ class EolBody(Body):
         if self.lagrangian == "eulerian":  # all motion is Eulerian: v = w0 x y + v0 on the grid
             self._v = wp.array(np.cross(w0, y_nodes) + v0, **vec)
         self._colliders: list[Collider] = []
+        self._active_rows = np.zeros(0, dtype=np.int64)
         self._dt_prev = self.dt_elastic
         self._bound = True
         self._force_pass()
@@ -369,10 +383,26 @@ class EolBody(Body):
             if not isinstance(c, (GroundPlane, MeshCollider)):
                 raise InvalidParameter(f"body '{self.name}': unsupported collider {type(c).__name__}")
         self._colliders = list(colliders)
-        if self._colliders:  # per-triangle contact records, only for a scene with colliders
-            nf = len(self._faces)
-            self._contact_scratch = (wp.zeros(nf, dtype=wp.float64, device=self._device),
-                                     *(wp.zeros(nf, dtype=wp.vec3d, device=self._device) for _ in range(3)))
+        if self._colliders:  # contact samples and row accumulators, only for a scene with colliders
+            face, bary, share = surface_samples(self._z_vertices, self._faces,
+                                                self._positive["contact_spacing"] * self.grid.h)
+            d = self._device
+            self._samples = (wp.array(face, dtype=wp.int32, device=d), wp.array(bary, dtype=wp.vec3d, device=d),
+                             wp.array(share, dtype=wp.float64, device=d))
+            k = self.collision_block
+            self._ccells = tuple(-(-c // k) for c in self.grid.cells)
+            self._layout = kc.RowLayout()
+            self._layout.origin, self._layout.h = self._origin, self._h
+            self._layout.cells, self._layout.block = wp.vec3i(*self.grid.cells), k
+            self._layout.ccells = wp.vec3i(*self._ccells)
+            n_rows = len(self._colliders) * int(np.prod(self._ccells))
+            width = 3 * (k + 1) ** 3 + 2
+            # slots for every (collider, collision cell), cleared by compact_rows after each use
+            self._row_acc = wp.zeros((n_rows, width), dtype=wp.float64, device=d)
+            self._row_flag = wp.zeros(n_rows, dtype=wp.int32, device=d)
+            self._row_ids = wp.zeros(n_rows, dtype=wp.int32, device=d)
+            self._row_packed = wp.zeros((n_rows, width), dtype=wp.float64, device=d)
+            self._n_rows = wp.zeros(1, dtype=wp.int32, device=d)
 
     def advance(self, t0: float, t1: float) -> None:
         """Adaptive steps (Eq. 33) from the body's time to t1, each capped by the frame end, the
@@ -449,20 +479,30 @@ class EolBody(Body):
         # 2-3. collision, assembly, QP
         dt_guess = min(cap, 2.0 * self._dt_prev)
         rows, t = self._contact_rows(t)
-        w0, w1 = self._w, self._a
         n_active = 0
         contact = None
         if rows is not None:
-            m = self._mass.numpy()
-            inv = np.repeat(np.where(m > 0.0, 1.0 / np.where(m > 0.0, m, 1.0), 0.0), 3)
-            w_h, a_h = self._w.numpy().ravel(), self._a.numpy().ravel()
-            sol = contact_qp(rows, inv, w_h, a_h, dt_guess)
-            w0 = wp.array(sol.w0.reshape(-1, 3), dtype=wp.vec3d, device=d)
-            w1 = wp.array(sol.w1.reshape(-1, 3), dtype=wp.vec3d, device=d)
+            idx = wp.array(rows.nodes.astype(np.int32), dtype=wp.int32, device=d)
+            local = wp.empty((len(rows.nodes), 7), dtype=wp.float64, device=d)
+            wp.launch(kc.gather_nodes, dim=len(rows.nodes), device=d, inputs=[idx, self._mass, self._w, self._a, local])
+            local_h = local.numpy()
+            m_t = local_h[:, 0]
+            inv = np.repeat(np.where(m_t > 0.0, 1.0 / np.where(m_t > 0.0, m_t, 1.0), 0.0), 3)
+            # warm start from the rows active last step (a resting body: one or two iterations)
+            guess = np.isin(rows.ids, self._active_rows)
+            sol = contact_qp(rows, inv, local_h[:, 1:4].ravel(), local_h[:, 4:7].ravel(), dt_guess,
+                             active=guess if guess.any() else None)
+            self._active_rows = rows.ids[sol.active]
+            dw0 = (sol.w0 - local_h[:, 1:4].ravel()).reshape(-1, 3)
+            dw1 = (sol.w1 - local_h[:, 4:7].ravel()).reshape(-1, 3)
+            # w, a become w_0, w_1 in place (both are recomputed from the state every step)
+            wp.launch(kc.scatter_nodes, dim=len(rows.nodes), device=d,
+                      inputs=[idx, wp.array(np.hstack([dw0, dw1]), dtype=wp.float64, device=d), self._w, self._a])
             n_active = int(sol.active.sum())
-            contact = (sol, w_h, a_h, m)
+            contact = (m_t, dw0, dw1, sol.iterations)
             t = self._tick("qp", t)
         # 4. least-squares split of both parts (Eqs. 23-25, 32) and the step size (Eq. 33)
+        w0, w1 = self._w, self._a
         (L0, c0), (L1, c1) = self._split(w0, w1)
         self._vmax.zero_()
         wp.launch(ks.eulerian_residual, dim=ks.CHUNKS, device=d,
@@ -480,9 +520,8 @@ class EolBody(Body):
         wp.launch(ks.combine, dim=n, device=d, inputs=[self._v0, self._v1, wp.float64(dt), self._vstar])
         L_new, c_new = L0 + dt * L1, c0 + dt * c1
         if contact is not None:  # momentum the QP delivered: sum_s m_s (w_s - w_hat_s)
-            sol, w_h, a_h, m_h = contact
-            dw = (sol.w0 + dt * sol.w1 - w_h - dt * a_h).reshape(-1, 3)
-            self.contact_impulse += self._axes() @ (m_h[:, None] * dw).sum(axis=0)
+            m_t, dw0, dw1, _ = contact
+            self.contact_impulse += self._axes() @ (m_t[:, None] * (dw0 + dt * dw1)).sum(axis=0)
         t = self._tick("ls", t)
         # 5. advect v* by itself, then z by v^{t+1} (Algorithm 1), and move the frame
         self._advect_fields(dt)
@@ -503,7 +542,9 @@ class EolBody(Body):
         self._tick("forces", t)
         self.gravity_impulse += dt * self._m_total * self._gravity
         self.history.append(StepRecord(time=self.time, dt=dt, rows=0 if rows is None else rows.m, active=n_active,
-                                       v_star=float(max(vmax[:3].max(), 0.0) + dt * vmax[3:].max())))
+                                       v_star=float(max(vmax[:3].max(), 0.0) + dt * vmax[3:].max()),
+                                       overlap=0.0 if rows is None else float(rows.overlap.sum()),
+                                       qp_iterations=0 if contact is None else contact[3]))
         self.time += dt
         self.steps += 1
         self._dt_prev = dt
@@ -579,58 +620,43 @@ class EolBody(Body):
         if not self._colliders:
             return None, t
         d = self._device
-        nf = len(self._faces)
-        depth, cen, an, cn = self._contact_scratch
+        face, bary, share = self._samples
         F, T = _mat(self._F), wp.vec3d(*self._T)
-        found = []
+        common = [self._y_vertices, self._faces_dev, face, bary, share, F, T, _mat(self._axes().T), self._layout,
+                  wp.float64(1.0 / self._positive["contact_relaxation"])]
         for ci, col in enumerate(self._colliders):
             if isinstance(col, GroundPlane):
                 nrm = col.resolved_normal(self._up)
-                wp.launch(kc.plane_contacts, dim=nf, device=d,
-                          inputs=[self._y_vertices, self._faces_dev, F, T, wp.vec3d(*nrm), wp.float64(col.height),
-                                  depth, cen, an, cn])
+                wp.launch(kc.plane_rows, dim=len(face), device=d,
+                          inputs=[*common, wp.vec3d(*nrm), wp.float64(col.height), ci, self._row_acc, self._row_flag])
             else:
                 M = col.matrix(self.time)
-                wp.launch(kc.mesh_contacts, dim=nf, device=d,
-                          inputs=[self._y_vertices, self._faces_dev, F, T, col.device_mesh(d).id,
-                                  wp.mat44d(*np.linalg.inv(M).ravel()), _mat(M[:3, :3]), float(col.extent),
-                                  depth, cen, an, cn])
-            dep = depth.numpy()
-            hit = np.flatnonzero(dep > 0.0)
-            if len(hit):
-                found.append((ci, col, hit, dep[hit], cen.numpy()[hit], an.numpy()[hit], cn.numpy()[hit]))
+                G, g = self._collider_velocity(col)
+                wp.launch(kc.mesh_rows, dim=len(face), device=d,
+                          inputs=[*common, col.device_mesh(d).id, wp.mat44d(*np.linalg.inv(M).ravel()),
+                                  _mat(M[:3, :3]), float(col.extent), _mat(G), wp.vec3d(*g), ci,
+                                  self._row_acc, self._row_flag])
         t = self._tick("collision", t)
-        if not found:
-            return None, t
-        y_vert = self._y_vertices.numpy()
-        keys, nodes, phi, coeff, rhs, overlap = [], [], [], [], [], []
-        cell = self._positive["collision_cell"] * self.grid.h
-        tau = self._positive["contact_relaxation"]
-        to_axes = self._axes().T
-        for ci, col, hit, dep, xc, anw, cnw in found:
-            yc = y_vert[self._faces[hit]].mean(axis=1)
-            nd, ph = self.grid.shape_functions(yc)
-            vb = self._collider_velocity(col, xc)
-            vol = np.abs(np.einsum("ij,ij->i", anw, cnw)) * dep
-            keys.append(np.column_stack([np.full(len(hit), ci), np.floor(xc / cell).astype(np.int64)]))
-            nodes.append(nd)
-            phi.append(ph)
-            coeff.append(anw @ to_axes.T)
-            rhs.append(np.einsum("ij,ij->i", anw, vb) - vol / tau)
-            overlap.append(vol)
-        rows = assemble_rows(np.concatenate(keys), np.concatenate(nodes), np.concatenate(phi), np.concatenate(coeff),
-                             np.concatenate(rhs), np.concatenate(overlap), self.grid.n_nodes)
-        t = self._tick("assembly", t)
-        return rows, t
+        self._n_rows.zero_()
+        wp.launch(kc.compact_rows, dim=self._row_flag.shape[0], device=d,
+                  inputs=[self._row_acc, self._row_flag, self._n_rows, self._row_ids, self._row_packed])
+        m = int(self._n_rows.numpy()[0])
+        if m == 0:
+            return None, self._tick("assembly", t)
+        ids = self._row_ids[:m].numpy().astype(np.int64)
+        nodes = block_nodes(self.grid.node_shape, self.collision_block, self._ccells, ids)
+        rows = rows_from_blocks(ids, self._row_packed[:m].numpy(), nodes, int(np.prod(self._ccells)))
+        return rows, self._tick("assembly", t)
 
-    def _collider_velocity(self, col: Collider, x: np.ndarray) -> np.ndarray:
-        """World velocity [m/s] of a kinematic collider's material at points x (zero for static ones)."""
+    def _collider_velocity(self, col: Collider) -> tuple[np.ndarray, np.ndarray]:
+        """(G, g) with the world velocity [m/s] of a kinematic collider's material v = G x + g (a
+        finite difference of its matrix over a short interval; zero for a static one)."""
         if not getattr(col, "kinematic", False):
-            return np.zeros_like(x)
+            return np.zeros((3, 3)), np.zeros(3)
         eps = max(1e-6, 1e-3 * self._dt_prev)
         M0, M1 = col.matrix(self.time), col.matrix(self.time + eps)
         D = M1 @ np.linalg.inv(M0)
-        return (x @ D[:3, :3].T + D[:3, 3] - x) / eps
+        return (D[:3, :3] - np.eye(3)) / eps, D[:3, 3] / eps
 
 
 def _mat(M: np.ndarray) -> wp.mat33d:

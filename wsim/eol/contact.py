@@ -1,9 +1,13 @@
 """Contact of an EoL body with the World's colliders: constraint rows (Eq. 28) and the QP (Eq. 29).
 
-Each surface triangle inside a collider contributes (int Phi_s n dGamma) . w_s to a row, for the 8
-nodes of the grid cell holding its centroid (one-point quadrature, area-weighted outward normal n).
-Rows are one per (collider, collision cell): triangles are binned by the spatial collision grid
-of Sec. 3.5, so the overlap is resolved locally rather than as one total volume. The row's right
+Each surface sample inside a collider contributes (int Phi_s n dGamma) . w_s to a row, for the 8
+nodes of the grid cell holding it (its share of the triangle's area-weighted outward normal n).
+Samples are the triangle centroids, or for a triangle wider than ``spacing`` the centroids of its
+k x k subdivision (``surface_samples``): one point per triangle misses a contact that falls
+between the centroids of a coarse mesh, which then sinks through the collider.
+Rows are one per (collider, collision cell): samples are binned by the collision grid of Sec. 3.5
+(blocks of the body's grid cells, see ``wsim.kernels.eol_contact``), so the overlap is resolved
+locally rather than as one total volume. The rows are assembled on the device; the row's right
 side is the collider's own flux (kinematic colliders), minus a relaxation of the overlap that
 already exists (vol / tau, so a penetration made during a step is pushed out over a few steps
 instead of being kept forever).
@@ -12,7 +16,9 @@ QP (Eq. 29): minimize 1/2 (w - w_hat)^T M (w - w_hat) subject to J w <= b, M the
 mass. Its dual is the small dense LCP: lambda >= 0, S lambda - r >= 0, complementary, with
 S = J M^-1 J^T (m x m) and r = J w_hat - b; solved by the primal-dual active-set method of Ito and
 Kunisch (2008), the paper's choice: finite, exact, O(m^3) with m the number of rows (tens to a
-few hundred per body), with projected Gauss-Seidel as a fallback should the active set cycle.
+few hundred per body), with non-negative least squares (Lawson-Hanson) as a fallback should the active set cycle.
+The QP lives on the nodes the rows touch (``ContactRows.nodes``): J's columns are those nodes'
+components only (dense: a few hundred nodes), so its cost does not grow with the grid.
 With the final active set frozen the solution is linear in w_hat = w + dt a and b, which gives the
 split v = v_0 + dt v_1 of Eq. (31) used by the adaptive step.
 """
@@ -20,54 +26,134 @@ split v = v_0 + dt v_1 of Eq. (31) used by the adaptive step.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
-import scipy.sparse as sp
+import scipy.linalg as sla
+import scipy.optimize as sopt
+
+
+def surface_samples(vertices: np.ndarray, faces: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Contact quadrature of a triangle surface: (face (P,) int32, barycentric (P, 3), area share (P,)).
+
+    A triangle whose longest edge is l gets k = ceil(l / spacing) subdivisions per edge and one
+    sample at the centroid of each of its k^2 congruent sub-triangles (share 1 / k^2): the
+    midpoint rule on the subdivision, exact for linear integrands on each piece."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    e = v[f[:, [1, 2, 0]]] - v[f]
+    k = np.maximum(np.ceil(np.linalg.norm(e, axis=2).max(axis=1) / spacing - 1e-9).astype(np.int64), 1)
+    face, bary, share = [], [], []
+    for kk in np.unique(k):
+        idx = np.flatnonzero(k == kk)
+        i, j = np.meshgrid(np.arange(kk), np.arange(kk), indexing="ij")
+        up = i + j <= kk - 1  # sub-triangles (i, j), (i+1, j), (i, j+1)
+        down = i + j <= kk - 2  # and (i+1, j), (i, j+1), (i+1, j+1)
+        uv = np.concatenate([np.column_stack([i[up] + 1 / 3, j[up] + 1 / 3]),
+                             np.column_stack([i[down] + 2 / 3, j[down] + 2 / 3])]) / kk
+        b = np.column_stack([1.0 - uv.sum(axis=1), uv])
+        face.append(np.repeat(idx, len(b)))
+        bary.append(np.tile(b, (len(idx), 1)))
+        share.append(np.full(len(idx) * len(b), 1.0 / kk**2))
+    return np.concatenate(face).astype(np.int32), np.concatenate(bary), np.concatenate(share)
 
 
 @dataclass(frozen=True)
 class ContactRows:
-    """J (m x 3 n_nodes, CSR), the right side b (m,), each row's collider index and overlap volume [m^3]."""
+    """J (m x 3 n, dense) on the n touched ``nodes`` (global grid indices; column 3 i + d is
+    component d of nodes[i]), the right side b (m,), each row's collider index, overlap volume
+    [m^3] and ``ids`` (m,) int: the row's slot (collider and collision cell), its identity from
+    step to step."""
 
-    J: sp.csr_matrix
+    J: np.ndarray
     b: np.ndarray
     collider: np.ndarray
     overlap: np.ndarray
+    nodes: np.ndarray
+    ids: np.ndarray
 
     @property
     def m(self) -> int:
         return len(self.b)
 
 
-def assemble_rows(keys: np.ndarray, nodes: np.ndarray, phi: np.ndarray, coeff: np.ndarray, rhs: np.ndarray,
-                  overlap: np.ndarray, n_nodes: int) -> ContactRows:
-    """Rows from K contact triangles: ``keys`` (K, 4) int (collider, collision cell), ``nodes``/``phi``
-    (K, 8) of the centroid's cell, ``coeff`` (K, 3) area normal in the velocity axes, ``rhs`` (K,)
-    the collider-flux part of b, ``overlap`` (K,) the triangle's overlap volume."""
-    uniq, row = np.unique(keys, axis=0, return_inverse=True)
-    row = row.ravel()
-    m = len(uniq)
-    r = np.repeat(row, 24)
-    cols = (3 * nodes[:, :, None] + np.arange(3)[None, None, :]).reshape(len(row), 24).ravel()
-    vals = (phi[:, :, None] * coeff[:, None, :]).reshape(len(row), 24).ravel()
-    J = sp.csr_matrix((vals, (r, cols)), shape=(m, 3 * n_nodes))
-    J.sum_duplicates()
-    return ContactRows(J=J, b=np.bincount(row, rhs, minlength=m), collider=uniq[:, 0],
-                       overlap=np.bincount(row, overlap, minlength=m))
+def block_nodes(node_shape: tuple[int, int, int], block: int, ccells: tuple[int, int, int],
+                ids: np.ndarray) -> np.ndarray:
+    """(m, (block + 1)^3) global node indices of the rows' collision cells, in the kernels' slot
+    order (-1 past the grid's last node: a block at the far edge of a grid not divisible by it)."""
+    cc = np.stack(np.unravel_index(ids % int(np.prod(ccells)), ccells), axis=1)
+    r = np.arange(block + 1)
+    loc = np.stack(np.meshgrid(r, r, r, indexing="ij"), axis=-1).reshape(-1, 3)
+    ijk = block * cc[:, None, :] + loc[None, :, :]
+    inside = np.all(ijk < np.asarray(node_shape), axis=2)
+    flat = (ijk[..., 0] * node_shape[1] + ijk[..., 1]) * node_shape[2] + ijk[..., 2]
+    return np.where(inside, flat, -1)
 
 
-def solve_lcp(S: np.ndarray, r: np.ndarray, max_iter: int = 50) -> tuple[np.ndarray, int]:
+def rows_from_blocks(ids: np.ndarray, packed: np.ndarray, nodes: np.ndarray, n_cells_per_collider: int) -> ContactRows:
+    """ContactRows from the kernels' packed rows: ``packed`` (m, 3 (block + 1)^3 + 2) = J block,
+    b, overlap; ``nodes`` (m, (block + 1)^3) from ``block_nodes``. Rows are sorted by id (the
+    atomic counter hands out slots in no set order) and J is restricted to the nodes with a
+    nonzero coefficient."""
+    order = np.argsort(ids, kind="stable")
+    ids, packed, nodes = ids[order], packed[order], nodes[order]
+    m, nb = nodes.shape
+    coeff = packed[:, : 3 * nb].reshape(m, nb, 3)
+    used = (nodes >= 0) & np.any(coeff != 0.0, axis=2)
+    touched, local = np.unique(nodes[used], return_inverse=True)
+    J = np.zeros((m, len(touched), 3))
+    J[np.nonzero(used)[0], local.ravel()] = coeff[used]
+    return ContactRows(J=J.reshape(m, 3 * len(touched)), b=packed[:, -2].copy(), collider=ids // n_cells_per_collider,
+                       overlap=packed[:, -1].copy(), nodes=touched, ids=ids)
+
+
+class ActiveSolver:
+    """Solves S[idx, idx] x = rhs for active sets idx of one S, keeping the last factorization
+    (the QP's final split reuses the one its active-set iteration ended on).
+
+    Cholesky: S = J M^-1 J^T is a Gram matrix, positive definite when the active rows are
+    independent; least squares (the minimum-norm multipliers) when it is not (dependent rows, a
+    row on massless nodes only). Cholesky is ~30x cheaper than lstsq's SVD at the hundred-odd
+    rows of a body resting on the ground."""
+
+    def __init__(self, S: np.ndarray) -> None:
+        self.S = S
+        self._key: bytes | None = None
+        self._factor: Any = None
+
+    def solve(self, idx: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+        key = idx.tobytes()
+        if key != self._key:
+            Saa = self.S[np.ix_(idx, idx)]
+            try:
+                self._factor = ("chol", sla.cho_factor(Saa, check_finite=False))
+                if not np.all(np.isfinite(self._factor[1][0])):
+                    raise np.linalg.LinAlgError
+            except (np.linalg.LinAlgError, ValueError):
+                self._factor = ("lstsq", Saa)
+            self._key = key
+        kind, f = self._factor
+        if kind == "chol":
+            return sla.cho_solve(f, rhs, check_finite=False)
+        return np.linalg.lstsq(f, rhs, rcond=None)[0]
+
+
+def solve_lcp(S: np.ndarray, r: np.ndarray, max_iter: int = 50, active: np.ndarray | None = None,
+              solver: ActiveSolver | None = None) -> tuple[np.ndarray, int]:
     """lambda >= 0 with S lambda - r >= 0 and lambda . (S lambda - r) = 0: primal-dual active set
-    (Ito & Kunisch 2008); projected Gauss-Seidel if the active set does not settle."""
+    (Ito & Kunisch 2008), started from ``active`` (a guess such as the last step's active rows;
+    default: the rows violated at lambda = 0); ``nnls_lcp`` if the active set does not settle
+    (then the iteration count returned is max_iter + 1)."""
     m = len(r)
+    solver = solver or ActiveSolver(S)
     lam = np.zeros(m)
     c = 1.0 / max(float(np.mean(np.diag(S))), 1e-300)
-    active = r > 0.0
+    active = (r > 0.0) if active is None else np.asarray(active, dtype=bool)
     for it in range(1, max_iter + 1):
         lam = np.zeros(m)
         if active.any():
             idx = np.flatnonzero(active)
-            lam[idx] = np.linalg.lstsq(S[np.ix_(idx, idx)], r[idx], rcond=None)[0]
+            lam[idx] = solver.solve(idx, r[idx])
         mu = S @ lam - r
         new = lam - c * mu > 0.0
         if np.array_equal(new, active):
@@ -76,16 +162,19 @@ def solve_lcp(S: np.ndarray, r: np.ndarray, max_iter: int = 50) -> tuple[np.ndar
                 return lam, it
             break
         active = new
-    lam = np.maximum(lam, 0.0)
-    d = np.diag(S).copy()
-    for it in range(max_iter + 1, max_iter + 2001):
-        prev = lam.copy()
-        for i in range(m):
-            if d[i] > 0.0:
-                lam[i] = max(0.0, lam[i] - (S[i] @ lam - r[i]) / d[i])
-        if np.abs(lam - prev).max() <= 1e-12 * max(np.abs(lam).max(), 1e-300):
-            break
-    return lam, it
+    return nnls_lcp(S, r), max_iter + 1
+
+
+def nnls_lcp(S: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The LCP as the bound-constrained QP min 1/2 l^T S l - r^T l, l >= 0, rewritten with S = L L^T
+    as the non-negative least-squares problem min |L^T l - L^-1 r|, l >= 0 (Lawson-Hanson, scipy:
+    finite and robust where the active-set iteration cycles on nearly dependent rows). A
+    semidefinite S (dependent rows) gets a 1e-12 relative diagonal shift first."""
+    m = len(r)
+    shift = 1e-12 * max(float(np.max(np.diag(S))), 1e-300)
+    L = sla.cholesky(S + shift * np.eye(m), lower=True, check_finite=False)
+    lam, _ = sopt.nnls(L.T, sla.solve_triangular(L, r, lower=True, check_finite=False), maxiter=50 * m)
+    return lam
 
 
 @dataclass(frozen=True)
@@ -100,23 +189,24 @@ class ContactSolution:
     iterations: int
 
 
-def contact_qp(rows: ContactRows, inv_mass: np.ndarray, w: np.ndarray, a: np.ndarray, dt_guess: float) -> ContactSolution:
-    """Solve Eq. (29) at w_hat = w + dt_guess a (flat 3 n_nodes arrays; ``inv_mass`` per component,
-    zero where a node has no mass), then split the solution on its active set into the parts
-    independent of and proportional to dt."""
+def contact_qp(rows: ContactRows, inv_mass: np.ndarray, w: np.ndarray, a: np.ndarray, dt_guess: float,
+               active: np.ndarray | None = None) -> ContactSolution:
+    """Solve Eq. (29) at w_hat = w + dt_guess a (flat 3 n arrays on ``rows.nodes``; ``inv_mass`` per
+    component, zero where a node has no mass; ``active`` an optional guess of the active rows),
+    then split the solution on its active set into the parts independent of and proportional to dt."""
     J = rows.J
-    JM = J.multiply(inv_mass[None, :]).tocsr()
-    S = (JM @ J.T).toarray()
-    lam, iters = solve_lcp(S, J @ (w + dt_guess * a) - rows.b)
+    JM = J * inv_mass[None, :]
+    S = JM @ J.T
+    solver = ActiveSolver(S)
+    lam, iters = solve_lcp(S, J @ (w + dt_guess * a) - rows.b, active=active, solver=solver)
     active = lam > 0.0
     idx = np.flatnonzero(active)
     lam0 = np.zeros(rows.m)
     lam1 = np.zeros(rows.m)
     if len(idx):
-        Saa = S[np.ix_(idx, idx)]
         Ja = J[idx]
-        lam0[idx] = np.linalg.lstsq(Saa, Ja @ w - rows.b[idx], rcond=None)[0]
-        lam1[idx] = np.linalg.lstsq(Saa, Ja @ a, rcond=None)[0]
+        both = solver.solve(idx, np.column_stack([Ja @ w - rows.b[idx], Ja @ a]))
+        lam0[idx], lam1[idx] = both[:, 0], both[:, 1]
     w0 = w - JM.T @ lam0
     w1 = a - JM.T @ lam1
     return ContactSolution(w0=w0, w1=w1, lam0=lam0, lam1=lam1, active=active, iterations=iters)

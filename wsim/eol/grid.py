@@ -9,11 +9,13 @@ lumped: m_s = sum over samples of rho w Phi_s (paper: M_2 diagonal). At rest y =
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+import warp as wp
 
-from wsim import mesh as wmesh
 from wsim.errors import InvalidParameter
+from wsim.kernels import eol_grid as kg
 
 # 8 corners of a cell in (i, j, k) offsets; the trilinear weight of corner c at local (a, b, c)
 CORNERS = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.int64)
@@ -98,8 +100,28 @@ class MaterialSamples:
         return float(self.weights.sum())
 
 
-def material_samples(grid: EolGrid, vertices: np.ndarray, faces: np.ndarray, per_axis: int = 2) -> MaterialSamples:
-    """Gauss-Legendre points (``per_axis`` per cell axis) inside the closed surface (winding number > 1/2)."""
+def inside_surface(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, device: Any = None) -> np.ndarray:
+    """Boolean mask of the points inside a closed surface (generalized winding number > 1/2), by a
+    Warp BVH query on ``device`` (default: the preferred one). Coordinates go to float32 relative to
+    the surface's box centre, so a body far from the origin keeps its resolution. About 10^6 points
+    per second on one CPU thread at the test sizes, against the O(points x faces) direct sum of
+    ``wsim.mesh.winding_number``: 36 s for a 32^3 grid of a 1280-face sphere."""
+    v = np.asarray(vertices, dtype=np.float64)
+    centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
+    dev = wp.get_device(device) if device is not None else wp.get_preferred_device()
+    mesh = wp.Mesh(points=wp.array((v - centre).astype(np.float32), dtype=wp.vec3, device=dev),
+                   indices=wp.array(np.asarray(faces).ravel().astype(np.int32), dtype=wp.int32, device=dev),
+                   support_winding_number=True)
+    pts = wp.array((np.asarray(points, dtype=np.float64) - centre).astype(np.float32), dtype=wp.vec3, device=dev)
+    out = wp.zeros(len(pts), dtype=wp.int32, device=dev)
+    wp.launch(kg.inside_mesh, dim=len(pts), inputs=[mesh.id, pts, out], device=dev)
+    return out.numpy().astype(bool)
+
+
+def material_samples(grid: EolGrid, vertices: np.ndarray, faces: np.ndarray, per_axis: int = 2,
+                     device: Any = None) -> MaterialSamples:
+    """Gauss-Legendre points (``per_axis`` per cell axis) inside the closed surface (winding number > 1/2,
+    by ``inside_surface`` on ``device``)."""
     x, _ = np.polynomial.legendre.leggauss(per_axis)
     local = 0.5 * (x + 1.0)
     lx, ly, lz = np.meshgrid(local, local, local, indexing="ij")
@@ -107,7 +129,7 @@ def material_samples(grid: EolGrid, vertices: np.ndarray, faces: np.ndarray, per
     ci, cj, ck = np.meshgrid(*(np.arange(n) for n in grid.cells), indexing="ij")
     cells = np.stack([ci.ravel(), cj.ravel(), ck.ravel()], axis=1)
     points = grid.origin + grid.h * (cells[:, None, :] + offsets[None, :, :]).reshape(-1, 3)
-    inside = wmesh.winding_number(vertices, faces, points) > 0.5
+    inside = inside_surface(vertices, faces, points, device)
     points = points[inside]
     weights = np.full(len(points), grid.h**3 / per_axis**3)
     nodes, phi = grid.shape_functions(points)
