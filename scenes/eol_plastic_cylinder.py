@@ -8,7 +8,8 @@ ground. A rod lying across it presses down 35 % of its height over 1 s, holds, a
 Above a yield stress of 3 kPa the material flows (Eqs. 34-37, F_p stored per material point):
 the cylinder keeps a dent and a bulge, its volume within a few percent. The rigid Lagrangian frame
 carries the body; the Eulerian grid (16 cells along the height) the dent. Surface triangles are
-split to the grid spacing: contact is sampled at triangle centroids.
+split to the grid spacing so the exported surface shows the dent (trimesh's cylinder has long
+slivers; contact samples would be subdivided by EolBody anyway).
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
     else:
         shape = wmesh.load_fitted(mesh, HEIGHT).copy()
     shape.apply_translation(np.array([0.0, HEIGHT / 2, 0.0]) - shape.bounds.mean(axis=0))
-    # contact is sampled at triangle centroids: keep triangles below the grid spacing
+    # triangles below the grid spacing: the exported surface can follow the dent
     shape = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(shape.vertices, shape.faces, HEIGHT / RESOLUTION))
     world.add(
         wsim.EolBody(

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 import scipy.linalg as sla
 import scipy.optimize as sopt
+import scipy.sparse as sp
 
 
 def surface_samples(vertices: np.ndarray, faces: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -195,8 +196,10 @@ def contact_qp(rows: ContactRows, inv_mass: np.ndarray, w: np.ndarray, a: np.nda
     component, zero where a node has no mass; ``active`` an optional guess of the active rows),
     then split the solution on its active set into the parts independent of and proportional to dt."""
     J = rows.J
-    JM = J * inv_mass[None, :]
-    S = JM @ J.T
+    # S = J M^-1 J^T through sparse J: a row touches (block + 1)^3 of the hundreds of nodes, and
+    # the dense product (~200 x 2000 x 200 at 32^3) costs ~10 ms where the sparse one costs ~0.5
+    Jsp = sp.csr_matrix(J)
+    S = (Jsp.multiply(inv_mass[None, :]) @ Jsp.T).toarray()
     solver = ActiveSolver(S)
     lam, iters = solve_lcp(S, J @ (w + dt_guess * a) - rows.b, active=active, solver=solver)
     active = lam > 0.0
@@ -207,6 +210,6 @@ def contact_qp(rows: ContactRows, inv_mass: np.ndarray, w: np.ndarray, a: np.nda
         Ja = J[idx]
         both = solver.solve(idx, np.column_stack([Ja @ w - rows.b[idx], Ja @ a]))
         lam0[idx], lam1[idx] = both[:, 0], both[:, 1]
-    w0 = w - JM.T @ lam0
-    w1 = a - JM.T @ lam1
+    w0 = w - inv_mass * (Jsp.T @ lam0)
+    w1 = a - inv_mass * (Jsp.T @ lam1)
     return ContactSolution(w0=w0, w1=w1, lam0=lam0, lam1=lam1, active=active, iterations=iters)
