@@ -33,10 +33,21 @@ from wsim.kernels.eol_grid import corner_weight
 
 
 @wp.struct
-class RowLayout:
-    """Where a sample's contribution goes: the body's grid (origin, h, cells) and the collision grid
+class ContactSurface:
+    """The body's contact samples and where their rows go: the tracked intermediate vertices y and
+    faces, the samples (face, barycentric, area share), the Lagrangian map x = F y + T, the world
+    -> velocity-axes rotation, 1 / tau, the body's grid (origin, h, cells) and the collision grid
     (``block`` cells per collision cell, ``ccells`` collision cells per axis)."""
 
+    y: wp.array(dtype=wp.vec3d)
+    faces: wp.array(dtype=wp.vec3i)
+    sample_face: wp.array(dtype=wp.int32)
+    sample_bary: wp.array(dtype=wp.vec3d)
+    sample_share: wp.array(dtype=wp.float64)
+    F: wp.mat33d
+    T: wp.vec3d
+    to_axes: wp.mat33d
+    inv_tau: wp.float64
     origin: wp.vec3d
     h: wp.float64
     cells: wp.vec3i
@@ -45,32 +56,35 @@ class RowLayout:
 
 
 @wp.func
-def sample_world(y: wp.array(dtype=wp.vec3d), tri: wp.vec3i, bary: wp.vec3d, share: wp.float64, F: wp.mat33d,
-                 T: wp.vec3d):
-    """The sample's intermediate point, world point and area-weighted normal (its share of the triangle)."""
-    y0 = y[tri[0]]
-    y1 = y[tri[1]]
-    y2 = y[tri[2]]
+def sample_world(surf: ContactSurface, i: int):
+    """Sample i's intermediate point, world point and area-weighted normal (its share of the triangle)."""
+    tri = surf.faces[surf.sample_face[i]]
+    bary = surf.sample_bary[i]
+    y0 = surf.y[tri[0]]
+    y1 = surf.y[tri[1]]
+    y2 = surf.y[tri[2]]
     yp = bary[0] * y0 + bary[1] * y1 + bary[2] * y2
+    F = surf.F
+    T = surf.T
     x0 = F * y0 + T
-    an = wp.float64(0.5) * share * wp.cross(F * y1 + T - x0, F * y2 + T - x0)
+    an = wp.float64(0.5) * surf.sample_share[i] * wp.cross(F * y1 + T - x0, F * y2 + T - x0)
     return yp, F * yp + T, an
 
 
 @wp.func
-def accumulate_row(acc: wp.array2d(dtype=wp.float64), flag: wp.array(dtype=wp.int32), layout: RowLayout,
+def accumulate_row(acc: wp.array2d(dtype=wp.float64), flag: wp.array(dtype=wp.int32), surf: ContactSurface,
                    collider: int, yp: wp.vec3d, coeff: wp.vec3d, rhs: wp.float64, overlap: wp.float64):
     """Add one sample to its row: Phi_s(yp) coeff on the 8 nodes of its grid cell, rhs and overlap."""
-    g = (yp - layout.origin) / layout.h
+    g = (yp - surf.origin) / surf.h
     cell = wp.vec3i()
     t = wp.vec3d()
     for d in range(3):
-        gd = wp.clamp(g[d], wp.float64(0.0), wp.float64(layout.cells[d]))
-        cell[d] = wp.min(int(gd), layout.cells[d] - 1)
+        gd = wp.clamp(g[d], wp.float64(0.0), wp.float64(surf.cells[d]))
+        cell[d] = wp.min(int(gd), surf.cells[d] - 1)
         t[d] = gd - wp.float64(cell[d])
-    k = layout.block
+    k = surf.block
     cc = wp.vec3i(cell[0] // k, cell[1] // k, cell[2] // k)
-    nc = layout.ccells
+    nc = surf.ccells
     row = ((collider * nc[0] + cc[0]) * nc[1] + cc[1]) * nc[2] + cc[2]
     flag[row] = 1
     for c in range(8):
@@ -87,27 +101,18 @@ def accumulate_row(acc: wp.array2d(dtype=wp.float64), flag: wp.array(dtype=wp.in
 
 
 @wp.func
-def add_sample(acc: wp.array2d(dtype=wp.float64), flag: wp.array(dtype=wp.int32), layout: RowLayout,
+def add_sample(acc: wp.array2d(dtype=wp.float64), flag: wp.array(dtype=wp.int32), surf: ContactSurface,
                collider: int, yp: wp.vec3d, x: wp.vec3d, an: wp.vec3d, cn: wp.vec3d, depth: wp.float64,
-               to_axes: wp.mat33d, G: wp.mat33d, g: wp.vec3d, inv_tau: wp.float64):
+               G: wp.mat33d, g: wp.vec3d):
     """A sample inside the collider: coefficient n_A in the velocity axes, right side n_A . v_B(x) -
     overlap / tau with the collider's velocity v_B = G x + g, overlap |n_A . n_B| depth."""
     vol = wp.abs(wp.dot(an, cn)) * depth
-    accumulate_row(acc, flag, layout, collider, yp, to_axes * an, wp.dot(an, G * x + g) - vol * inv_tau, vol)
+    accumulate_row(acc, flag, surf, collider, yp, surf.to_axes * an, wp.dot(an, G * x + g) - vol * surf.inv_tau, vol)
 
 
 @wp.kernel
 def plane_rows(
-    y: wp.array(dtype=wp.vec3d),
-    faces: wp.array(dtype=wp.vec3i),
-    sample_face: wp.array(dtype=wp.int32),
-    sample_bary: wp.array(dtype=wp.vec3d),
-    sample_share: wp.array(dtype=wp.float64),
-    F: wp.mat33d,
-    T: wp.vec3d,
-    to_axes: wp.mat33d,
-    layout: RowLayout,
-    inv_tau: wp.float64,
+    surf: ContactSurface,
     normal: wp.vec3d,
     height: wp.float64,
     collider: int,
@@ -116,24 +121,15 @@ def plane_rows(
 ):
     """Samples below the (static) plane normal . x = height."""
     i = wp.tid()
-    yp, x, an = sample_world(y, faces[sample_face[i]], sample_bary[i], sample_share[i], F, T)
+    yp, x, an = sample_world(surf, i)
     depth = height - wp.dot(normal, x)
     if depth > wp.float64(0.0):
-        add_sample(acc, flag, layout, collider, yp, x, an, normal, depth, to_axes, wp.mat33d(), wp.vec3d(), inv_tau)
+        add_sample(acc, flag, surf, collider, yp, x, an, normal, depth, wp.mat33d(), wp.vec3d())
 
 
 @wp.kernel
 def mesh_rows(
-    y: wp.array(dtype=wp.vec3d),
-    faces: wp.array(dtype=wp.vec3i),
-    sample_face: wp.array(dtype=wp.int32),
-    sample_bary: wp.array(dtype=wp.vec3d),
-    sample_share: wp.array(dtype=wp.float64),
-    F: wp.mat33d,
-    T: wp.vec3d,
-    to_axes: wp.mat33d,
-    layout: RowLayout,
-    inv_tau: wp.float64,
+    surf: ContactSurface,
     mesh: wp.uint64,
     to_local: wp.mat44d,
     rotation: wp.mat33d,
@@ -146,7 +142,7 @@ def mesh_rows(
 ):
     """Samples inside a closed collider mesh (winding-sign query) moving with v_B = G x + g."""
     i = wp.tid()
-    yp, x, an = sample_world(y, faces[sample_face[i]], sample_bary[i], sample_share[i], F, T)
+    yp, x, an = sample_world(surf, i)
     pl = to_local * wp.vec4d(x[0], x[1], x[2], wp.float64(1.0))
     p = wp.vec3(float(pl[0]), float(pl[1]), float(pl[2]))
     q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
@@ -154,8 +150,7 @@ def mesh_rows(
         closest = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
         n = wp.mesh_eval_face_normal(mesh, q.face)
         cn = rotation * wp.vec3d(wp.float64(n[0]), wp.float64(n[1]), wp.float64(n[2]))
-        add_sample(acc, flag, layout, collider, yp, x, an, cn, wp.float64(wp.length(closest - p)), to_axes, G, g,
-                   inv_tau)
+        add_sample(acc, flag, surf, collider, yp, x, an, cn, wp.float64(wp.length(closest - p)), G, g)
 
 
 @wp.kernel

@@ -387,14 +387,17 @@ class EolBody(Body):
             face, bary, share = surface_samples(self._z_vertices, self._faces,
                                                 self._positive["contact_spacing"] * self.grid.h)
             d = self._device
-            self._samples = (wp.array(face, dtype=wp.int32, device=d), wp.array(bary, dtype=wp.vec3d, device=d),
-                             wp.array(share, dtype=wp.float64, device=d))
             k = self.collision_block
             self._ccells = tuple(-(-c // k) for c in self.grid.cells)
-            self._layout = kc.RowLayout()
-            self._layout.origin, self._layout.h = self._origin, self._h
-            self._layout.cells, self._layout.block = wp.vec3i(*self.grid.cells), k
-            self._layout.ccells = wp.vec3i(*self._ccells)
+            surf = kc.ContactSurface()  # the constant part; the frame is set each step
+            surf.y, surf.faces = self._y_vertices, self._faces_dev
+            surf.sample_face = wp.array(face, dtype=wp.int32, device=d)
+            surf.sample_bary = wp.array(bary, dtype=wp.vec3d, device=d)
+            surf.sample_share = wp.array(share, dtype=wp.float64, device=d)
+            surf.inv_tau = wp.float64(1.0 / self._positive["contact_relaxation"])
+            surf.origin, surf.h, surf.cells = self._origin, self._h, wp.vec3i(*self.grid.cells)
+            surf.block, surf.ccells = k, wp.vec3i(*self._ccells)
+            self._surface = surf
             n_rows = len(self._colliders) * int(np.prod(self._ccells))
             width = 3 * (k + 1) ** 3 + 2
             # slots for every (collider, collision cell), cleared by compact_rows after each use
@@ -620,20 +623,18 @@ class EolBody(Body):
         if not self._colliders:
             return None, t
         d = self._device
-        face, bary, share = self._samples
-        F, T = _mat(self._F), wp.vec3d(*self._T)
-        common = [self._y_vertices, self._faces_dev, face, bary, share, F, T, _mat(self._axes().T), self._layout,
-                  wp.float64(1.0 / self._positive["contact_relaxation"])]
+        surf = self._surface
+        surf.F, surf.T, surf.to_axes = _mat(self._F), wp.vec3d(*self._T), _mat(self._axes().T)
         for ci, col in enumerate(self._colliders):
             if isinstance(col, GroundPlane):
                 nrm = col.resolved_normal(self._up)
-                wp.launch(kc.plane_rows, dim=len(face), device=d,
-                          inputs=[*common, wp.vec3d(*nrm), wp.float64(col.height), ci, self._row_acc, self._row_flag])
+                wp.launch(kc.plane_rows, dim=surf.sample_face.shape[0], device=d,
+                          inputs=[surf, wp.vec3d(*nrm), wp.float64(col.height), ci, self._row_acc, self._row_flag])
             else:
                 M = col.matrix(self.time)
-                G, g = self._collider_velocity(col)
-                wp.launch(kc.mesh_rows, dim=len(face), device=d,
-                          inputs=[*common, col.device_mesh(d).id, wp.mat44d(*np.linalg.inv(M).ravel()),
+                G, g = self._collider_velocity(col, M)
+                wp.launch(kc.mesh_rows, dim=surf.sample_face.shape[0], device=d,
+                          inputs=[surf, col.device_mesh(d).id, wp.mat44d(*np.linalg.inv(M).ravel()),
                                   _mat(M[:3, :3]), float(col.extent), _mat(G), wp.vec3d(*g), ci,
                                   self._row_acc, self._row_flag])
         t = self._tick("collision", t)
@@ -648,13 +649,14 @@ class EolBody(Body):
         rows = rows_from_blocks(ids, self._row_packed[:m].numpy(), nodes, int(np.prod(self._ccells)))
         return rows, self._tick("assembly", t)
 
-    def _collider_velocity(self, col: Collider) -> tuple[np.ndarray, np.ndarray]:
+    def _collider_velocity(self, col: Collider, M0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(G, g) with the world velocity [m/s] of a kinematic collider's material v = G x + g (a
-        finite difference of its matrix over a short interval; zero for a static one)."""
+        finite difference of its matrix M0 at the body's time over a short interval; zero for a
+        static one)."""
         if not getattr(col, "kinematic", False):
             return np.zeros((3, 3)), np.zeros(3)
         eps = max(1e-6, 1e-3 * self._dt_prev)
-        M0, M1 = col.matrix(self.time), col.matrix(self.time + eps)
+        M1 = col.matrix(self.time + eps)
         D = M1 @ np.linalg.inv(M0)
         return (D[:3, :3] - np.eye(3)) / eps, D[:3, 3] / eps
 
