@@ -36,7 +36,7 @@ PAPER_TABLE_II = {"forces": 2.0e-3, "collision": 15.7e-3, "assembly": 2.9e-3, "l
                   "total": 96.6e-3, "note": "2 spheres of 32^3, GTX 580 (per step, both bodies)"}
 
 
-def make_world(case: str, resolution: int, device: str, lagrangian: str, profile: bool, **body_kw):
+def make_world(case: str, resolution: int, device: str, lagrangian: str, profile: bool, damping: float = 20.0, **body_kw):
     gravity = (0.0, -9.81, 0.0) if case == "contact" else (0.0, 0.0, 0.0)
     world = wsim.World(fps=30, gravity=gravity, device=device)
     if case == "contact":
@@ -44,7 +44,7 @@ def make_world(case: str, resolution: int, device: str, lagrangian: str, profile
     ball = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
     ball.apply_translation((0.0, 0.3 if case == "contact" else 1.0, 0.0))
     body = world.add(wsim.EolBody(ball, wsim.ElasticMaterial(E=5e4, nu=0.3, rho=500.0), resolution=resolution,
-                                  lagrangian=lagrangian, angular_velocity=(0.0, np.pi, 0.0), damping=20.0,
+                                  lagrangian=lagrangian, angular_velocity=(0.0, np.pi, 0.0), damping=damping,
                                   profile=profile, **body_kw))
     return world, body
 

@@ -348,6 +348,7 @@ class EolBody(Body):
         self._tmp = wp.zeros(n, **vec)
         self._tmp2 = wp.zeros(n, **vec)
         self._advect_scratch = (wp.zeros(shape, **vec), wp.zeros(shape, **vec)) if self.advection == "bfecc" else None
+        self._chunks = ks.CHUNKS_CUDA if d.is_cuda else ks.CHUNKS_CPU
         self._moments = wp.zeros(40, dtype=wp.float64, device=d)
         self._vmax = wp.zeros(6, dtype=wp.float64, device=d)
         self._energy = wp.zeros(1, dtype=wp.float64, device=d)
@@ -508,9 +509,9 @@ class EolBody(Body):
         w0, w1 = self._w, self._a
         (L0, c0), (L1, c1) = self._split(w0, w1)
         self._vmax.zero_()
-        wp.launch(ks.eulerian_residual, dim=ks.CHUNKS, device=d,
+        wp.launch(ks.eulerian_residual, dim=self._chunks, device=d,
                   inputs=[w0, w1, self._mass, self._shape, self._origin, self._h, _mat(L0), wp.vec3d(*c0), _mat(L1),
-                          wp.vec3d(*c1), _mat(np.linalg.inv(self._F_L())), self._v0, self._v1, self._vmax])
+                          wp.vec3d(*c1), _mat(np.linalg.inv(self._F_L())), self._chunks, self._v0, self._v1, self._vmax])
         vmax = self._vmax.numpy()
         if not np.all(np.isfinite(vmax)) or not np.all(np.isfinite(L0 + L1)):
             self._failure = ("Eulerian velocity", f"non-finite at step {self.steps} (t = {self.time:.6g} s)", "non-finite")
@@ -559,8 +560,9 @@ class EolBody(Body):
             z = (np.zeros((3, 3)), np.zeros(3))
             return z, z
         self._moments.zero_()
-        wp.launch(ks.velocity_moments, dim=ks.CHUNKS, device=self._device,
-                  inputs=[w0, w1, self._mass, self._shape, self._origin, self._h, int(self.split == "mass"), self._moments])
+        wp.launch(ks.velocity_moments, dim=self._chunks, device=self._device,
+                  inputs=[w0, w1, self._mass, self._shape, self._origin, self._h, int(self.split == "mass"), self._chunks,
+                          self._moments])
         mom = self._moments.numpy()
         C = mom[:16].reshape(4, 4)
         self._m_total = C[3, 3] if self.split == "mass" else float(np.sum(self._mass.numpy()))
