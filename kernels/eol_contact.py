@@ -160,47 +160,153 @@ def compact_rows(
     count: wp.array(dtype=wp.int32),
     row_id: wp.array(dtype=wp.int32),
     packed: wp.array2d(dtype=wp.float64),
+    row_of_slot: wp.array(dtype=wp.int32),
 ):
     """Pack the rows that received samples (in no set order: the host sorts them by id) and clear
-    their slots, so the accumulator is zero for the next step without a full memset."""
+    their slots, so the accumulator is zero for the next step without a full memset;
+    ``row_of_slot`` maps every slot to its packed row (-1: no row this step)."""
     r = wp.tid()
     if flag[r] == 0:
+        row_of_slot[r] = -1
         return
     slot = wp.atomic_add(count, 0, 1)
     row_id[slot] = r
+    row_of_slot[r] = slot
     for q in range(acc.shape[1]):
         packed[slot, q] = acc[r, q]
         acc[r, q] = wp.float64(0.0)
     flag[r] = 0
 
 
+@wp.func
+def block_origin(r: int, surf: ContactSurface) -> wp.vec3i:
+    """First grid node of the collision cell of row slot r (slots are collider-major)."""
+    nc = surf.ccells
+    cell = r % (nc[0] * nc[1] * nc[2])
+    k = surf.block
+    return wp.vec3i(k * (cell // (nc[1] * nc[2])), k * ((cell // nc[2]) % nc[1]), k * (cell % nc[2]))
+
+
+@wp.func
+def node_index(g: wp.vec3i, surf: ContactSurface) -> int:
+    """Flat index of grid node g, or -1 past the grid (a block at the far edge of a grid not
+    divisible by the block)."""
+    c = surf.cells
+    if g[0] > c[0] or g[1] > c[1] or g[2] > c[2]:
+        return -1
+    return (g[0] * (c[1] + 1) + g[1]) * (c[2] + 1) + g[2]
+
+
+@wp.func
+def row_coefficient(packed: wp.array2d(dtype=wp.float64), i: int, slot: int) -> wp.vec3d:
+    return wp.vec3d(packed[i, 3 * slot], packed[i, 3 * slot + 1], packed[i, 3 * slot + 2])
+
+
 @wp.kernel
-def gather_nodes(
-    nodes: wp.array(dtype=wp.int32),
+def row_products(
+    surf: ContactSurface,
+    packed: wp.array2d(dtype=wp.float64),
+    row_id: wp.array(dtype=wp.int32),
     mass: wp.array(dtype=wp.float64),
     w: wp.array(dtype=wp.vec3d),
     a: wp.array(dtype=wp.vec3d),
-    out: wp.array2d(dtype=wp.float64),
+    m: int,
+    system: wp.array(dtype=wp.float64),
 ):
-    """(m_s, w_s, a_s) of the nodes the contact rows touch: the QP only needs these."""
+    """Per packed row i, after S (m x m) in ``system``: J_i w, J_i a, b_i, overlap_i and sum_s J_is
+    over nodes with mass (the row's momentum direction, for the contact impulse), each a segment
+    of m values."""
     i = wp.tid()
-    s = nodes[i]
-    out[i, 0] = mass[s]
+    k1 = surf.block + 1
+    base = block_origin(row_id[i], surf)
+    jw = wp.float64(0.0)
+    ja = wp.float64(0.0)
+    jsum = wp.vec3d()
+    for slot in range(k1 * k1 * k1):
+        s = node_index(base + wp.vec3i(slot // (k1 * k1), (slot // k1) % k1, slot % k1), surf)
+        if s >= 0:
+            if mass[s] > wp.float64(0.0):
+                c = row_coefficient(packed, i, slot)
+                jw += wp.dot(c, w[s])
+                ja += wp.dot(c, a[s])
+                jsum += c
+    n = packed.shape[1]
+    o = m * m
+    system[o + i] = jw
+    system[o + m + i] = ja
+    system[o + 2 * m + i] = packed[i, n - 2]
+    system[o + 3 * m + i] = packed[i, n - 1]
     for d in range(3):
-        out[i, 1 + d] = w[s][d]
-        out[i, 4 + d] = a[s][d]
+        system[o + (4 + d) * m + i] = jsum[d]
 
 
 @wp.kernel
-def scatter_nodes(
-    nodes: wp.array(dtype=wp.int32),
-    delta: wp.array2d(dtype=wp.float64),
+def schur_complement(
+    surf: ContactSurface,
+    packed: wp.array2d(dtype=wp.float64),
+    row_id: wp.array(dtype=wp.int32),
+    row_of_slot: wp.array(dtype=wp.int32),
+    mass: wp.array(dtype=wp.float64),
+    m: int,
+    system: wp.array(dtype=wp.float64),
+):
+    """S_ij = sum_s J_is . J_js / m_s (S = J M^-1 J^T, the QP's dual matrix) for packed row i and the
+    row j of collider q // 27 in the collision cell at offset q % 27 (-1..1 per axis) from i's:
+    only such rows share nodes with i, so each nonzero of S is written by exactly one thread (the
+    rest of ``system``'s m x m block is zeroed beforehand). The shared nodes are visited in the
+    same order from either side, so S is exactly symmetric."""
+    i, q = wp.tid()
+    nc = surf.ccells
+    per = nc[0] * nc[1] * nc[2]
+    ri = row_id[i]
+    k = surf.block
+    cc = wp.vec3i((ri % per) // (nc[1] * nc[2]), ((ri % per) // nc[2]) % nc[1], ri % nc[2])
+    o = q % 27
+    cj = cc + wp.vec3i(o // 9 - 1, (o // 3) % 3 - 1, o % 3 - 1)
+    if cj[0] < 0 or cj[1] < 0 or cj[2] < 0 or cj[0] >= nc[0] or cj[1] >= nc[1] or cj[2] >= nc[2]:
+        return
+    j = row_of_slot[(q // 27) * per + (cj[0] * nc[1] + cj[1]) * nc[2] + cj[2]]
+    if j < 0:
+        return
+    k1 = k + 1
+    base_i = k * cc
+    base_j = k * cj
+    total = wp.float64(0.0)
+    for slot in range(k1 * k1 * k1):
+        g = base_i + wp.vec3i(slot // (k1 * k1), (slot // k1) % k1, slot % k1)
+        l = g - base_j
+        if l[0] >= 0 and l[0] <= k and l[1] >= 0 and l[1] <= k and l[2] >= 0 and l[2] <= k:
+            s = node_index(g, surf)
+            if s >= 0:
+                if mass[s] > wp.float64(0.0):
+                    other = (l[0] * k1 + l[1]) * k1 + l[2]
+                    total += wp.dot(row_coefficient(packed, i, slot), row_coefficient(packed, j, other)) / mass[s]
+    system[i * m + j] = total
+
+
+@wp.kernel
+def apply_impulses(
+    surf: ContactSurface,
+    packed: wp.array2d(dtype=wp.float64),
+    row_id: wp.array(dtype=wp.int32),
+    mass: wp.array(dtype=wp.float64),
+    lam: wp.array2d(dtype=wp.float64),
     w: wp.array(dtype=wp.vec3d),
     a: wp.array(dtype=wp.vec3d),
 ):
-    """w_s += dw0_s and a_s += dw1_s on the touched nodes: the QP's correction -M^-1 J^T lambda_i
-    (Eq. 31), applied in place to the unconstrained w and a, which become w_0 and w_1."""
+    """w -= M^-1 J^T lambda_0 and a -= M^-1 J^T lambda_1 (Eq. 31 on the frozen active set): the
+    unconstrained w and a become w_0 and w_1 in place. Rows share nodes: atomics."""
     i = wp.tid()
-    s = nodes[i]
-    w[s] = w[s] + wp.vec3d(delta[i, 0], delta[i, 1], delta[i, 2])
-    a[s] = a[s] + wp.vec3d(delta[i, 3], delta[i, 4], delta[i, 5])
+    l0 = lam[i, 0]
+    l1 = lam[i, 1]
+    if l0 == wp.float64(0.0) and l1 == wp.float64(0.0):
+        return
+    k1 = surf.block + 1
+    base = block_origin(row_id[i], surf)
+    for slot in range(k1 * k1 * k1):
+        s = node_index(base + wp.vec3i(slot // (k1 * k1), (slot // k1) % k1, slot % k1), surf)
+        if s >= 0:
+            if mass[s] > wp.float64(0.0):
+                c = row_coefficient(packed, i, slot) / mass[s]
+                wp.atomic_sub(w, s, l0 * c)
+                wp.atomic_sub(a, s, l1 * c)

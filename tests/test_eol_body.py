@@ -233,7 +233,7 @@ def test_contact_rows_match_a_host_assembly(device, block):
     b = EolBody(ball, SOFT, resolution=8, rotation=rot, collision_block=block)
     b.bind(wp.get_device(device), np.zeros(3), np.array([0.0, 1.0, 0.0]))
     b.attach_colliders([plane, box])
-    rows, _ = b._contact_rows(0.0)
+    rows = b.contact_rows()
     # the reference, sample by sample
     F, T = b.frame
     y = b.intermediate_vertices()
@@ -282,6 +282,28 @@ def test_contact_rows_match_a_host_assembly(device, block):
             np.testing.assert_allclose(got[nd], J[nd], rtol=1e-9, atol=1e-12 * scale)
         assert rows.b[r] == pytest.approx(bb, rel=1e-3, abs=1e-9)  # depth from float32 collider geometry
         assert rows.overlap[r] == pytest.approx(ov, rel=1e-3, abs=1e-12)
+    # the dual QP assembled on the device (S = J M^-1 J^T over neighbouring collision cells of
+    # both colliders, J w, J a, sum_s J_s) equals the host product of the rows read back
+    rng = np.random.default_rng(3)
+    n = b.grid.n_nodes
+    mass = b.node_masses()
+    w_h, a_h = rng.standard_normal((n, 3)), rng.standard_normal((n, 3))
+    b._w.assign(wp.array(w_h, dtype=wp.vec3d, device=device))
+    b._a.assign(wp.array(a_h, dtype=wp.vec3d, device=device))
+    m, _ = b._collect_rows(0.0)
+    system, _ = b._read_system(m)
+    Jd = rows.J.toarray()
+    has_mass = np.repeat(mass[rows.nodes] > 0.0, 3)
+    inv = np.where(has_mass, 1.0 / np.repeat(np.where(mass[rows.nodes] > 0, mass[rows.nodes], 1.0), 3), 0.0)
+    S = (Jd * inv) @ Jd.T
+    assert np.count_nonzero(S - np.diag(np.diag(S))) > 0  # rows do share nodes
+    np.testing.assert_array_equal(system.ids, rows.ids)
+    np.testing.assert_array_equal(system.S, system.S.T)
+    np.testing.assert_allclose(system.S, S, rtol=1e-12, atol=1e-12 * np.abs(S).max())
+    for got, ref in ((system.Jw, (Jd * has_mass) @ w_h[rows.nodes].ravel()), (system.Ja, (Jd * has_mass) @ a_h[rows.nodes].ravel()),
+                     (system.jsum, (Jd * has_mass).reshape(m, -1, 3).sum(axis=1)), (system.b, rows.b),
+                     (system.overlap, rows.overlap)):
+        np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
 
 
 def squeeze(plasticity):

@@ -42,7 +42,7 @@ from wsim.bem.fundamental import cross_matrix
 from wsim.body import Body
 from wsim.colliders import GroundPlane, MeshCollider
 from wsim.eol.advection import advect_arrays, check_scheme
-from wsim.eol.contact import ContactRows, block_nodes, contact_qp, rows_from_blocks, surface_samples
+from wsim.eol.contact import ContactRows, ContactSystem, block_nodes, rows_from_blocks, solve_contact, surface_samples
 from wsim.eol.grid import make_grid, material_samples
 from wsim.eol.timestep import adaptive_dt, elastic_dt_limit
 from wsim.errors import InvalidParameter, SimulationDiverged
@@ -406,7 +406,9 @@ class EolBody(Body):
             self._row_flag = wp.zeros(n_rows, dtype=wp.int32, device=d)
             self._row_ids = wp.zeros(n_rows, dtype=wp.int32, device=d)
             self._row_packed = wp.zeros((n_rows, width), dtype=wp.float64, device=d)
+            self._row_of_slot = wp.full(n_rows, -1, dtype=wp.int32, device=d)
             self._n_rows = wp.zeros(1, dtype=wp.int32, device=d)
+            self._system = wp.empty(0, dtype=wp.float64, device=d)  # S and the row vectors, grown on demand
 
     def advance(self, t0: float, t1: float) -> None:
         """Adaptive steps (Eq. 33) from the body's time to t1, each capped by the frame end, the
@@ -480,30 +482,25 @@ class EolBody(Body):
             wp.launch(ks.add_acceleration, dim=n, device=d,
                       inputs=[self._tmp, self._mass, self._a])
         t = self._tick("forces", t)
-        # 2-3. collision, assembly, QP
+        # 2-3. collision, assembly (S = J M^-1 J^T and the rows' rates on the device), QP
         dt_guess = min(cap, 2.0 * self._dt_prev)
-        rows, t = self._contact_rows(t)
+        m, t = self._collect_rows(t)
         n_active = 0
-        contact = None
-        if rows is not None:
-            idx = wp.array(rows.nodes.astype(np.int32), dtype=wp.int32, device=d)
-            local = wp.empty((len(rows.nodes), 7), dtype=wp.float64, device=d)
-            wp.launch(kc.gather_nodes, dim=len(rows.nodes), device=d, inputs=[idx, self._mass, self._w, self._a, local])
-            local_h = local.numpy()
-            m_t = local_h[:, 0]
-            inv = np.repeat(np.where(m_t > 0.0, 1.0 / np.where(m_t > 0.0, m_t, 1.0), 0.0), 3)
+        system = sol = None
+        if m:
+            system, order = self._read_system(m)
+            t = self._tick("assembly", t)
             # warm start from the rows active last step (a resting body: one or two iterations)
-            guess = np.isin(rows.ids, self._active_rows)
-            sol = contact_qp(rows, inv, local_h[:, 1:4].ravel(), local_h[:, 4:7].ravel(), dt_guess,
-                             active=guess if guess.any() else None)
-            self._active_rows = rows.ids[sol.active]
-            dw0 = (sol.w0 - local_h[:, 1:4].ravel()).reshape(-1, 3)
-            dw1 = (sol.w1 - local_h[:, 4:7].ravel()).reshape(-1, 3)
+            guess = np.isin(system.ids, self._active_rows)
+            sol = solve_contact(system, dt_guess, active=guess if guess.any() else None)
+            self._active_rows = system.ids[sol.active]
+            lam = np.empty((m, 2))
+            lam[order] = np.column_stack([sol.lam0, sol.lam1])  # back to the device's row order
             # w, a become w_0, w_1 in place (both are recomputed from the state every step)
-            wp.launch(kc.scatter_nodes, dim=len(rows.nodes), device=d,
-                      inputs=[idx, wp.array(np.hstack([dw0, dw1]), dtype=wp.float64, device=d), self._w, self._a])
+            wp.launch(kc.apply_impulses, dim=m, device=d,
+                      inputs=[self._surface, self._row_packed, self._row_ids, self._mass,
+                              wp.array(lam, dtype=wp.float64, device=d), self._w, self._a])
             n_active = int(sol.active.sum())
-            contact = (m_t, dw0, dw1, sol.iterations)
             t = self._tick("qp", t)
         # 4. least-squares split of both parts (Eqs. 23-25, 32) and the step size (Eq. 33)
         w0, w1 = self._w, self._a
@@ -523,9 +520,8 @@ class EolBody(Body):
             return
         wp.launch(ks.combine, dim=n, device=d, inputs=[self._v0, self._v1, wp.float64(dt), self._vstar])
         L_new, c_new = L0 + dt * L1, c0 + dt * c1
-        if contact is not None:  # momentum the QP delivered: sum_s m_s (w_s - w_hat_s)
-            m_t, dw0, dw1, _ = contact
-            self.contact_impulse += self._axes() @ (m_t[:, None] * (dw0 + dt * dw1)).sum(axis=0)
+        if sol is not None:  # momentum the QP delivered: sum_s m_s (w_s - w_hat_s) = -J^T lambda
+            self.contact_impulse -= self._axes() @ ((sol.lam0 + dt * sol.lam1) @ system.jsum)
         t = self._tick("ls", t)
         # 5. advect v* by itself, then z by v^{t+1} (Algorithm 1), and move the frame
         self._advect_fields(dt)
@@ -545,10 +541,10 @@ class EolBody(Body):
         self._force_pass()
         self._tick("forces", t)
         self.gravity_impulse += dt * self._m_total * self._gravity
-        self.history.append(StepRecord(time=self.time, dt=dt, rows=0 if rows is None else rows.m, active=n_active,
+        self.history.append(StepRecord(time=self.time, dt=dt, rows=m, active=n_active,
                                        v_star=float(max(vmax[:3].max(), 0.0) + dt * vmax[3:].max()),
-                                       overlap=0.0 if rows is None else float(rows.overlap.sum()),
-                                       qp_iterations=0 if contact is None else contact[3]))
+                                       overlap=0.0 if system is None else float(system.overlap.sum()),
+                                       qp_iterations=0 if sol is None else sol.iterations))
         self.time += dt
         self.steps += 1
         self._dt_prev = dt
@@ -621,9 +617,11 @@ class EolBody(Body):
                       inputs=[z3, self._origin, self._h, zs, ys, tol, 20, ys, self._iters])
 
     # -- contact --------------------------------------------------------------------------------
-    def _contact_rows(self, t: float) -> tuple[ContactRows | None, float]:
+    def _collect_rows(self, t: float) -> tuple[int, float]:
+        """Collision (the samples inside colliders, binned into rows on the device) and compaction:
+        the number of rows m (their packed data stay on the device)."""
         if not self._colliders:
-            return None, t
+            return 0, t
         d = self._device
         surf = self._surface
         surf.F, surf.T, surf.to_axes = _mat(self._F), wp.vec3d(*self._T), _mat(self._axes().T)
@@ -642,14 +640,43 @@ class EolBody(Body):
         t = self._tick("collision", t)
         self._n_rows.zero_()
         wp.launch(kc.compact_rows, dim=self._row_flag.shape[0], device=d,
-                  inputs=[self._row_acc, self._row_flag, self._n_rows, self._row_ids, self._row_packed])
+                  inputs=[self._row_acc, self._row_flag, self._n_rows, self._row_ids, self._row_packed,
+                          self._row_of_slot])
         m = int(self._n_rows.numpy()[0])
+        return m, (t if m else self._tick("assembly", t))
+
+    def _read_system(self, m: int) -> tuple[ContactSystem, np.ndarray]:
+        """The dual QP of the m compacted rows, assembled on the device (one m^2 + 7 m copy to the
+        host), sorted by row id; and that order (sorted row i is the device's row order[i])."""
+        d = self._device
+        size = m * m + 7 * m
+        if self._system.shape[0] < size:
+            self._system = wp.empty(2 * size, dtype=wp.float64, device=d)
+        self._system[: m * m].zero_()
+        wp.launch(kc.row_products, dim=m, device=d, inputs=[self._surface, self._row_packed, self._row_ids, self._mass,
+                                                           self._w, self._a, m, self._system])
+        wp.launch(kc.schur_complement, dim=(m, 27 * len(self._colliders)), device=d,
+                  inputs=[self._surface, self._row_packed, self._row_ids, self._row_of_slot, self._mass, m,
+                          self._system])
+        ids = self._row_ids[:m].numpy().astype(np.int64)
+        host = self._system[:size].numpy()
+        order = np.argsort(ids, kind="stable")
+        vec = host[m * m:].reshape(7, m)[:, order]
+        system = ContactSystem(S=host[: m * m].reshape(m, m)[np.ix_(order, order)], Jw=vec[0], Ja=vec[1], b=vec[2],
+                               ids=ids[order], collider=ids[order] // int(np.prod(self._ccells)), overlap=vec[3],
+                               jsum=vec[4:].T.copy())
+        return system, order
+
+    def contact_rows(self) -> ContactRows | None:
+        """The contact constraints of Eq. (28) at the current state, read back with J (None: no
+        contact). For inspection and tests: a step keeps J on the device."""
+        self._require_bound()
+        m, _ = self._collect_rows(time.perf_counter())
         if m == 0:
-            return None, self._tick("assembly", t)
+            return None
         ids = self._row_ids[:m].numpy().astype(np.int64)
         nodes = block_nodes(self.grid.node_shape, self.collision_block, self._ccells, ids)
-        rows = rows_from_blocks(ids, self._row_packed[:m].numpy(), nodes, int(np.prod(self._ccells)))
-        return rows, self._tick("assembly", t)
+        return rows_from_blocks(ids, self._row_packed[:m].numpy(), nodes, int(np.prod(self._ccells)))
 
     def _collider_velocity(self, col: Collider, M0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(G, g) with the world velocity [m/s] of a kinematic collider's material v = G x + g (a

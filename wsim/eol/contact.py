@@ -25,7 +25,7 @@ split v = v_0 + dt v_1 of Eq. (31) used by the adaptive step.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -182,36 +182,65 @@ def nnls_lcp(S: np.ndarray, r: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class ContactSolution:
-    """w = w0 + dt w1 and lambda = lambda0 + dt lambda1 on the frozen active set (Eq. 31)."""
+class ContactSystem:
+    """The QP of Eq. (29) in its dual form, all an active-set solve needs (m rows, sorted by id):
+    S = J M^-1 J^T (m x m), J w and J a (the rows' rates at the unconstrained velocity w and
+    acceleration a), b, the rows' ``ids``, ``collider`` and ``overlap`` [m^3], and ``jsum`` (m, 3) =
+    sum_s J_s over nodes with mass (row i's impulse lambda_i changes the momentum by
+    -lambda_i jsum_i). ``EolBody`` assembles it on the device, so only m-sized data reach the host."""
 
-    w0: np.ndarray
-    w1: np.ndarray
+    S: np.ndarray
+    Jw: np.ndarray
+    Ja: np.ndarray
+    b: np.ndarray
+    ids: np.ndarray
+    collider: np.ndarray
+    overlap: np.ndarray
+    jsum: np.ndarray
+
+    @property
+    def m(self) -> int:
+        return len(self.b)
+
+
+@dataclass(frozen=True)
+class ContactSolution:
+    """lambda = lambda0 + dt lambda1 on the frozen active set (Eq. 31); ``contact_qp`` adds the
+    velocities w = w0 + dt w1."""
+
     lam0: np.ndarray
     lam1: np.ndarray
     active: np.ndarray
     iterations: int
+    w0: np.ndarray | None = None
+    w1: np.ndarray | None = None
+
+
+def solve_contact(system: ContactSystem, dt_guess: float, active: np.ndarray | None = None) -> ContactSolution:
+    """The multipliers of Eq. (29) at w_hat = w + dt_guess a (``active``: an optional guess of the
+    active rows), split on the final active set into the parts independent of and proportional
+    to dt (one more solve with the factorization the iteration ended on)."""
+    solver = ActiveSolver(system.S)
+    lam, iters = solve_lcp(system.S, system.Jw + dt_guess * system.Ja - system.b, active=active, solver=solver)
+    active = lam > 0.0
+    idx = np.flatnonzero(active)
+    lam0 = np.zeros(system.m)
+    lam1 = np.zeros(system.m)
+    if len(idx):
+        both = solver.solve(idx, np.column_stack([system.Jw[idx] - system.b[idx], system.Ja[idx]]))
+        lam0[idx], lam1[idx] = both[:, 0], both[:, 1]
+    return ContactSolution(lam0=lam0, lam1=lam1, active=active, iterations=iters)
 
 
 def contact_qp(rows: ContactRows, inv_mass: np.ndarray, w: np.ndarray, a: np.ndarray, dt_guess: float,
                active: np.ndarray | None = None) -> ContactSolution:
-    """Solve Eq. (29) at w_hat = w + dt_guess a (flat 3 n arrays on ``rows.nodes``; ``inv_mass`` per
-    component, zero where a node has no mass; ``active`` an optional guess of the active rows),
-    then split the solution on its active set into the parts independent of and proportional to dt."""
-    # S = J M^-1 J^T through sparse J: a row touches (block + 1)^3 of the hundreds of nodes, and
-    # the dense product (~200 x 2000 x 200 at 32^3) costs ~10 ms where the sparse one costs ~0.5
+    """Eq. (29) from the primal data, on the host: J on ``rows.nodes``, w and a flat 3 n arrays
+    there, ``inv_mass`` per component (zero where a node has no mass). The reference for the
+    device assembly of ``ContactSystem`` (tests, and rows read back with ``EolBody.contact_rows``)."""
     J = rows.J if sp.issparse(rows.J) else sp.csr_matrix(rows.J)
-    S = (J @ sp.diags(inv_mass) @ J.T).toarray()
-    solver = ActiveSolver(S)
-    lam, iters = solve_lcp(S, J @ (w + dt_guess * a) - rows.b, active=active, solver=solver)
-    active = lam > 0.0
-    idx = np.flatnonzero(active)
-    lam0 = np.zeros(rows.m)
-    lam1 = np.zeros(rows.m)
-    if len(idx):
-        Ja = J[idx]
-        both = solver.solve(idx, np.column_stack([Ja @ w - rows.b[idx], Ja @ a]))
-        lam0[idx], lam1[idx] = both[:, 0], both[:, 1]
-    w0 = w - inv_mass * (J.T @ lam0)
-    w1 = a - inv_mass * (J.T @ lam1)
-    return ContactSolution(w0=w0, w1=w1, lam0=lam0, lam1=lam1, active=active, iterations=iters)
+    JMinv = J @ sp.diags(inv_mass)
+    system = ContactSystem(S=(JMinv @ J.T).toarray(), Jw=J @ w, Ja=J @ a, b=rows.b, ids=rows.ids,
+                           collider=rows.collider, overlap=rows.overlap,
+                           jsum=(J @ sp.diags((inv_mass > 0.0).astype(float))).toarray().reshape(rows.m, -1, 3).sum(axis=1))
+    sol = solve_contact(system, dt_guess, active)
+    return replace(sol, w0=w - JMinv.T @ sol.lam0, w1=a - JMinv.T @ sol.lam1)
