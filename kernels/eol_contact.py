@@ -198,6 +198,13 @@ def node_index(g: wp.vec3i, surf: ContactSurface) -> int:
 
 
 @wp.func
+def slot_node(surf: ContactSurface, base: wp.vec3i, slot: int) -> int:
+    """Grid node of slot (li, lj, lk) of the block whose first node is ``base`` (-1 past the grid)."""
+    k1 = surf.block + 1
+    return node_index(base + wp.vec3i(slot // (k1 * k1), (slot // k1) % k1, slot % k1), surf)
+
+
+@wp.func
 def row_coefficient(packed: wp.array2d(dtype=wp.float64), i: int, slot: int) -> wp.vec3d:
     return wp.vec3d(packed[i, 3 * slot], packed[i, 3 * slot + 1], packed[i, 3 * slot + 2])
 
@@ -223,7 +230,7 @@ def row_products(
     ja = wp.float64(0.0)
     jsum = wp.vec3d()
     for slot in range(k1 * k1 * k1):
-        s = node_index(base + wp.vec3i(slot // (k1 * k1), (slot // k1) % k1, slot % k1), surf)
+        s = slot_node(surf, base, slot)
         if s >= 0:
             if mass[s] > wp.float64(0.0):
                 c = row_coefficient(packed, i, slot)
@@ -304,7 +311,7 @@ def apply_impulses(
     k1 = surf.block + 1
     base = block_origin(row_id[i], surf)
     for slot in range(k1 * k1 * k1):
-        s = node_index(base + wp.vec3i(slot // (k1 * k1), (slot // k1) % k1, slot % k1), surf)
+        s = slot_node(surf, base, slot)
         if s >= 0:
             if mass[s] > wp.float64(0.0):
                 c = row_coefficient(packed, i, slot) / mass[s]
