@@ -179,12 +179,23 @@ def compact_rows(
 
 
 @wp.func
-def block_origin(r: int, surf: ContactSurface) -> wp.vec3i:
-    """First grid node of the collision cell of row slot r (slots are collider-major)."""
+def row_cell(r: int, surf: ContactSurface) -> wp.vec3i:
+    """Collision cell of row slot r (slots are collider-major)."""
     nc = surf.ccells
     cell = r % (nc[0] * nc[1] * nc[2])
-    k = surf.block
-    return wp.vec3i(k * (cell // (nc[1] * nc[2])), k * ((cell // nc[2]) % nc[1]), k * (cell % nc[2]))
+    return wp.vec3i(cell // (nc[1] * nc[2]), (cell // nc[2]) % nc[1], cell % nc[2])
+
+
+@wp.func
+def block_origin(r: int, surf: ContactSurface) -> wp.vec3i:
+    """First grid node of the collision cell of row slot r."""
+    return surf.block * row_cell(r, surf)
+
+
+@wp.func
+def slot_offset(slot: int, k1: int) -> wp.vec3i:
+    """(li, lj, lk) of a block slot, k1 = block + 1 nodes per axis."""
+    return wp.vec3i(slot // (k1 * k1), (slot // k1) % k1, slot % k1)
 
 
 @wp.func
@@ -200,8 +211,7 @@ def node_index(g: wp.vec3i, surf: ContactSurface) -> int:
 @wp.func
 def slot_node(surf: ContactSurface, base: wp.vec3i, slot: int) -> int:
     """Grid node of slot (li, lj, lk) of the block whose first node is ``base`` (-1 past the grid)."""
-    k1 = surf.block + 1
-    return node_index(base + wp.vec3i(slot // (k1 * k1), (slot // k1) % k1, slot % k1), surf)
+    return node_index(base + slot_offset(slot, surf.block + 1), surf)
 
 
 @wp.func
@@ -265,9 +275,8 @@ def schur_complement(
     i, q = wp.tid()
     nc = surf.ccells
     per = nc[0] * nc[1] * nc[2]
-    ri = row_id[i]
     k = surf.block
-    cc = wp.vec3i((ri % per) // (nc[1] * nc[2]), ((ri % per) // nc[2]) % nc[1], ri % nc[2])
+    cc = row_cell(row_id[i], surf)
     o = q % 27
     cj = cc + wp.vec3i(o // 9 - 1, (o // 3) % 3 - 1, o % 3 - 1)
     if cj[0] < 0 or cj[1] < 0 or cj[2] < 0 or cj[0] >= nc[0] or cj[1] >= nc[1] or cj[2] >= nc[2]:
@@ -280,7 +289,7 @@ def schur_complement(
     base_j = k * cj
     total = wp.float64(0.0)
     for slot in range(k1 * k1 * k1):
-        g = base_i + wp.vec3i(slot // (k1 * k1), (slot // k1) % k1, slot % k1)
+        g = base_i + slot_offset(slot, k1)
         l = g - base_j
         if l[0] >= 0 and l[0] <= k and l[1] >= 0 and l[1] <= k and l[2] >= 0 and l[2] <= k:
             s = node_index(g, surf)

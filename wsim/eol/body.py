@@ -484,12 +484,16 @@ class EolBody(Body):
         t = self._tick("forces", t)
         # 2-3. collision, assembly (S = J M^-1 J^T and the rows' rates on the device), QP
         dt_guess = min(cap, 2.0 * self._dt_prev)
-        m, t = self._collect_rows(t)
-        n_active = 0
+        m = n_active = 0
         system = sol = None
-        if m:
-            system, order = self._read_system(m)
+        if self._colliders:
+            self._collide()
+            t = self._tick("collision", t)
+            m = self._compact()
+            if m:
+                system, order = self._read_system(m)
             t = self._tick("assembly", t)
+        if m:
             # warm start from the rows active last step (a resting body: one or two iterations)
             guess = np.isin(system.ids, self._active_rows)
             sol = solve_contact(system, dt_guess, active=guess if guess.any() else None)
@@ -617,11 +621,8 @@ class EolBody(Body):
                       inputs=[z3, self._origin, self._h, zs, ys, tol, 20, ys, self._iters])
 
     # -- contact --------------------------------------------------------------------------------
-    def _collect_rows(self, t: float) -> tuple[int, float]:
-        """Collision (the samples inside colliders, binned into rows on the device) and compaction:
-        the number of rows m (their packed data stay on the device)."""
-        if not self._colliders:
-            return 0, t
+    def _collide(self) -> None:
+        """Collision: the surface samples inside each collider, binned into rows on the device."""
         d = self._device
         surf = self._surface
         surf.F, surf.T, surf.to_axes = _mat(self._F), wp.vec3d(*self._T), _mat(self._axes().T)
@@ -637,13 +638,14 @@ class EolBody(Body):
                           inputs=[surf, col.device_mesh(d).id, wp.mat44d(*np.linalg.inv(M).ravel()),
                                   _mat(M[:3, :3]), float(col.extent), _mat(G), wp.vec3d(*g), ci,
                                   self._row_acc, self._row_flag])
-        t = self._tick("collision", t)
+
+    def _compact(self) -> int:
+        """Pack the rows that received samples (their data stay on the device); their number m."""
         self._n_rows.zero_()
-        wp.launch(kc.compact_rows, dim=self._row_flag.shape[0], device=d,
+        wp.launch(kc.compact_rows, dim=self._row_flag.shape[0], device=self._device,
                   inputs=[self._row_acc, self._row_flag, self._n_rows, self._row_ids, self._row_packed,
                           self._row_of_slot])
-        m = int(self._n_rows.numpy()[0])
-        return m, (t if m else self._tick("assembly", t))
+        return int(self._n_rows.numpy()[0])
 
     def _read_system(self, m: int) -> tuple[ContactSystem, np.ndarray]:
         """The dual QP of the m compacted rows, assembled on the device (one m^2 + 7 m copy to the
@@ -671,7 +673,10 @@ class EolBody(Body):
         """The contact constraints of Eq. (28) at the current state, read back with J (None: no
         contact). For inspection and tests: a step keeps J on the device."""
         self._require_bound()
-        m, _ = self._collect_rows(time.perf_counter())
+        if not self._colliders:
+            return None
+        self._collide()
+        m = self._compact()
         if m == 0:
             return None
         ids = self._row_ids[:m].numpy().astype(np.int64)

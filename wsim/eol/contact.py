@@ -17,8 +17,10 @@ mass. Its dual is the small dense LCP: lambda >= 0, S lambda - r >= 0, complemen
 S = J M^-1 J^T (m x m) and r = J w_hat - b; solved by the primal-dual active-set method of Ito and
 Kunisch (2008), the paper's choice: finite, exact, O(m^3) with m the number of rows (tens to a
 few hundred per body), with non-negative least squares (Lawson-Hanson) as a fallback should the active set cycle.
-The QP lives on the nodes the rows touch (``ContactRows.nodes``): J's columns are those nodes'
-components only (dense: a few hundred nodes), so its cost does not grow with the grid.
+``EolBody`` forms the dual on the device (``ContactSystem``: S, J w, J a from the packed rows,
+``wsim.kernels.eol_contact``), so only m-sized data reach the host and the cost does not grow
+with the grid; ``contact_qp`` is the same QP from primal data (J on the touched nodes), the host
+reference the tests compare with.
 With the final active set frozen the solution is linear in w_hat = w + dt a and b, which gives the
 split v = v_0 + dt v_1 of Eq. (31) used by the adaptive step.
 """
