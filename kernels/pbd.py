@@ -16,7 +16,7 @@ weighted by w_i and every constraint below is invariant under translation and ro
 projection changes neither linear nor angular momentum.
 
 Parallel projection is race-free because constraints are coloured (no two constraints of one
-colour share a particle; see ``wsim.pbd.colouring``) and each launch covers one colour,
+colour share a particle; see ``wsim.colouring``) and each launch covers one colour,
 starting at ``offset`` in the colour-sorted arrays. Positions and multipliers are float32
 (bandwidth); the global volume sums are accumulated in float64 because they add up
 O(N) terms of alternating sign.

@@ -16,7 +16,7 @@ from scipy.optimize import curve_fit
 import wsim
 from wsim.bem import build_operators
 from wsim.bem.analytic import breathing_frequency, breathing_xi, static_radial_displacement
-from wsim.bem.frame import rodrigues
+from wsim.rigid import rodrigues
 
 RADIUS = 0.1
 MAT = wsim.ElasticMaterial(E=1.0e5, nu=0.3, rho=1000.0)

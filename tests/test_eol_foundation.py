@@ -152,7 +152,7 @@ def forces_of(grid, samples, z, device, **kw):
 
 
 def test_rigidly_rotated_reference_map_has_no_force(device):
-    from wsim.bem.frame import rodrigues
+    from wsim.rigid import rodrigues
 
     grid, samples, masses = elastic_setup()
     y = grid.node_positions()
@@ -333,7 +333,7 @@ def test_adaptive_dt_limits():
 # -- surface tracking (Algorithm 2, spec T12) -------------------------------------------------
 def test_surface_tracking(device, rng):
     from wsim.eol.tracking import track_surface
-    from wsim.bem.frame import rodrigues
+    from wsim.rigid import rodrigues
 
     m = body("sphere")
     grid = make_grid(m.vertices, 12, padding=3)

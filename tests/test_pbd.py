@@ -8,7 +8,7 @@ import trimesh
 
 import wsim
 from wsim import mesh as wmesh
-from wsim.pbd.colouring import colour_constraints, is_valid_colouring
+from wsim.colouring import colour_constraints, is_valid_colouring
 
 G = 9.81
 

@@ -17,7 +17,7 @@ sys.path.insert(0, __file__.rsplit("/", 1)[0])
 import profile_pbd  # noqa: E402
 
 from wsim.device import quiet_warp  # noqa: E402
-from wsim.kernels import contact as kc  # noqa: E402
+from wsim.kernels import pbd_contact as kc  # noqa: E402
 from wsim.kernels import pbd as kp  # noqa: E402
 
 

@@ -4,22 +4,34 @@ A body owns its operators (immutable, possibly shared) and its state, and advanc
 one frame time to the next with whatever internal step it needs: PBD with fixed substeps, BEM
 with the dt baked into its operators, EoL with an adaptive dt. The World only asks it to
 ``advance``, to report non-finite state, and for world-space surface points for export.
+
+What a new method implements (the README's "Architecture" section says the same):
+
+- ``__init__``: validate input, build or load the immutable operators (nothing on a device yet);
+- ``bind(device, gravity, up)``: allocate ``self.state`` (one dataclass of everything that
+  changes when the body steps, see ``wsim.state``) and scratch on the World's device;
+- ``attach_colliders(surfaces)``: prepare contact with the World's ``wsim.colliders.Surfaces``
+  (query poses through it, never the colliders' own functions);
+- ``advance(t0, t1)``, ``points()``, ``faces``, ``check_finite(frame, t)``;
+- optionally ``_state_loaded()`` (recompute what derives from the state after a restore) and
+  ``signature()`` (settings a checkpoint must match besides the state's shapes).
 """
 
 from __future__ import annotations
 
 import time
 from abc import ABC, abstractmethod
-from typing import TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 import warp as wp
 
 from wsim.errors import InvalidParameter
+from wsim.state import load_state_arrays, state_arrays
 from wsim.validate import as_vec3
 
 if TYPE_CHECKING:
-    from wsim.colliders import Collider
+    from wsim.colliders import Surfaces
 
 
 class Body(ABC):
@@ -42,6 +54,43 @@ class Body(ABC):
         self.name = name
         self.initial_velocity = as_vec3(velocity, f"body '{name}': velocity")
         self.initial_angular_velocity = as_vec3(angular_velocity, f"body '{name}': angular_velocity")
+        self.state: Any = None  # the method's state dataclass, allocated by bind
+        self.timings: dict[str, float] = {}  # seconds per stage of the method's step (``_tick``)
+        self.profile = False  # synchronize the device at each ``_tick`` so GPU time lands in its stage
+        self._device: wp.Device | None = None  # set by bind
+
+    @property
+    def bound(self) -> bool:
+        """True once the body belongs to a World (its state is allocated)."""
+        return self._device is not None
+
+    def _require_bound(self) -> None:
+        if self._device is None:
+            raise InvalidParameter(f"body '{self.name}': add it to a World (world.add) before reading or setting its state")
+
+    # -- state --------------------------------------------------------------------------------
+    def get_state(self) -> dict[str, np.ndarray]:
+        """A copy of the body's state as named host arrays (what a checkpoint stores)."""
+        self._require_bound()
+        return state_arrays(self.state)
+
+    def set_state(self, arrays: dict[str, np.ndarray]) -> None:
+        """Load state saved by ``get_state`` of a body built the same way; checked whole before
+        anything changes (``wsim.state.StateMismatch`` otherwise)."""
+        self._require_bound()
+        load_state_arrays(self.state, arrays, f"body '{self.name}'")
+        self._state_loaded()
+
+    def _state_loaded(self) -> None:
+        """Hook after ``set_state``: recompute quantities derived from the state (none by default)."""
+
+    def signature(self) -> dict[str, Any]:
+        """What a checkpoint of this body must match besides the state's shapes: its class, its
+        surface and the settings that change the meaning of the state. Extended by subclasses."""
+        import hashlib
+
+        return {"class": type(self).__name__,
+                "faces": hashlib.sha256(np.ascontiguousarray(self.faces, dtype=np.int32).tobytes()).hexdigest()[:16]}
 
     @property
     @abstractmethod
@@ -56,8 +105,9 @@ class Body(ABC):
         """
 
     @abstractmethod
-    def attach_colliders(self, colliders: Sequence[Collider]) -> None:
-        """Prepare contact with the World's colliders; called once before the first step."""
+    def attach_colliders(self, surfaces: Surfaces) -> None:
+        """Prepare contact with the World's colliders (``surfaces``: poses, velocities and device
+        meshes through one interface); called once before the first step."""
 
     @abstractmethod
     def advance(self, t0: float, t1: float) -> None:
@@ -73,9 +123,9 @@ class Body(ABC):
 
     def _tick(self, stage: str, t0: float) -> float:
         """Add the seconds since t0 to ``self.timings[stage]`` and return now. With ``self.profile``
-        the device (``self._device``) is synchronized first, so GPU time lands in its own stage."""
-        if getattr(self, "profile", False) and not self._device.is_cpu:
+        the device is synchronized first, so GPU time lands in its own stage."""
+        if self.profile and self._device is not None and not self._device.is_cpu:
             wp.synchronize_device(self._device)
         t1 = time.perf_counter()
-        self.timings[stage] += t1 - t0
+        self.timings[stage] = self.timings.get(stage, 0.0) + t1 - t0
         return t1

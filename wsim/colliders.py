@@ -1,14 +1,22 @@
-"""Colliders: static or kinematic geometry that bodies bounce off but never move.
+"""Colliders: static or kinematic surfaces that bodies bounce off but never move.
 
+Every collider is a kinematic surface with one interface: its rigid pose ``matrix(t)`` (local to
+world), ``friction``, whether it is ``kinematic``, its device mesh (a Warp BVH, or None for an
+analytic surface), its analytic ``plane(up)`` (or None) and a ``display_mesh`` for export.
 ``GroundPlane`` is the half-space above a plane; ``MeshCollider`` is a triangle mesh posed by a
-fixed 4x4 matrix or by a function of time (kinematic). Each collider carries its Coulomb
-friction coefficient. The device copy of a mesh (a Warp BVH) is built once per device and shared
-by every body that collides with it.
+fixed 4x4 matrix or by a function of time. The device copy of a mesh is built once per device
+and shared by every body that collides with it.
+
+Bodies and the USD writer never call a collider's pose function themselves: the World owns one
+``Surfaces`` (its colliders resolved against its up axis) and every consumer asks it for poses
+and velocities at the times it needs, so a kinematic pose is evaluated and validated once per
+time however many bodies query it. Contact between bodies will extend the same seam.
 """
 
 from __future__ import annotations
 
-from typing import Callable, Union
+from abc import ABC, abstractmethod
+from typing import Callable, Iterator, Sequence, Union
 
 import numpy as np
 import warp as wp
@@ -27,12 +35,30 @@ def _check_friction(friction: float, name: str) -> float:
     return mu
 
 
-class Collider:
-    """Common fields: ``name`` (USD prim name) and Coulomb ``friction`` coefficient [-]."""
+class Collider(ABC):
+    """A kinematic surface. Common fields: ``name`` (USD prim name), Coulomb ``friction``
+    coefficient [-], ``kinematic`` (its pose depends on time)."""
 
     name: str
     friction: float
     kinematic: bool = False
+    extent: float = float("inf")  # diagonal of the surface's bounding box [m] (inf: unbounded)
+
+    def matrix(self, t: float) -> np.ndarray:
+        """Local-to-world rigid 4x4 matrix at time t [s] (identity: the surface is given in world)."""
+        return np.eye(4)
+
+    def plane(self, up: np.ndarray) -> tuple[np.ndarray, float] | None:
+        """(unit normal, height) when the surface is the analytic half-space normal . x >= height, else None."""
+        return None
+
+    def device_mesh(self, device: wp.Device) -> wp.Mesh | None:
+        """The triangle mesh (local coordinates, with its BVH) on ``device``; None for an analytic surface."""
+        return None
+
+    @abstractmethod
+    def display_mesh(self, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(points (P, 3), faces (F, k)) to show the surface, in its local coordinates [m]."""
 
 
 class GroundPlane(Collider):
@@ -69,6 +95,21 @@ class GroundPlane(Collider):
 
     def resolved_normal(self, up: np.ndarray) -> np.ndarray:
         return up if self.normal is None else self.normal
+
+    def plane(self, up: np.ndarray) -> tuple[np.ndarray, float]:
+        return self.resolved_normal(up), self.height
+
+    def display_mesh(self, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A square of edge ``size`` on the plane, counter-clockwise seen from above (one quad)."""
+        n = self.resolved_normal(up)
+        a = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+        a /= np.linalg.norm(a)
+        b = np.cross(n, a)
+        half = 0.5 * self.size
+        quad = self.height * n + half * np.array([-a - b, a - b, a + b, -a + b])
+        if np.dot(np.cross(quad[1] - quad[0], quad[2] - quad[0]), n) < 0:
+            quad = quad[::-1]
+        return quad, np.array([[0, 1, 2, 3]], dtype=np.int32)
 
 
 def _check_matrix(m: np.ndarray, name: str, t: float | None) -> np.ndarray:
@@ -123,6 +164,9 @@ class MeshCollider(Collider):
             return _check_matrix(self._transform(t), self.name, t)  # type: ignore[operator]
         return self._transform  # type: ignore[return-value]
 
+    def display_mesh(self, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.vertices, self.faces
+
     def device_mesh(self, device: wp.Device) -> wp.Mesh:
         """The Warp mesh (with its BVH) on ``device``, built on first use and shared."""
         key = device.alias
@@ -132,3 +176,54 @@ class MeshCollider(Collider):
                 indices=wp.array(self.faces.ravel().astype(np.int32), dtype=wp.int32, device=device),
             )
         return self._device_meshes[key]
+
+
+class Surfaces:
+    """The World's colliders as kinematic surfaces, the one place bodies and the writer query.
+
+    ``matrix(i, t)`` evaluates (and validates) collider i's pose at t once and keeps it until the
+    World starts the next frame (``new_frame``), so every body and the writer see the same pose
+    for the same time. ``velocity(i, t, eps)`` is the rigid velocity field of the collider's
+    material, v = G x + g, by a forward difference of its pose over eps (zero for a static one).
+    """
+
+    def __init__(self, colliders: Sequence[Collider], up: np.ndarray) -> None:
+        self.colliders: tuple[Collider, ...] = tuple(colliders)
+        self.up = np.asarray(up, dtype=np.float64)
+        self._poses: dict[tuple[int, float], np.ndarray] = {}
+
+    def __len__(self) -> int:
+        return len(self.colliders)
+
+    def __iter__(self) -> Iterator[Collider]:
+        return iter(self.colliders)
+
+    def __getitem__(self, i: int) -> Collider:
+        return self.colliders[i]
+
+    def new_frame(self) -> None:
+        """Forget the poses of the last frame (a long run must not keep every substep's matrix)."""
+        self._poses.clear()
+
+    def plane(self, i: int) -> tuple[np.ndarray, float] | None:
+        """(normal, height) of an analytic half-space collider, in the World's axes; else None."""
+        return self.colliders[i].plane(self.up)
+
+    def matrix(self, i: int, t: float) -> np.ndarray:
+        """Local-to-world 4x4 pose of collider i at time t [s]."""
+        c = self.colliders[i]
+        if not c.kinematic:
+            return c.matrix(t)
+        key = (i, float(t))
+        found = self._poses.get(key)
+        if found is None:
+            found = self._poses[key] = c.matrix(t)
+        return found
+
+    def velocity(self, i: int, t: float, eps: float) -> tuple[np.ndarray, np.ndarray]:
+        """(G, g): the world velocity [m/s] of collider i's material at x is G x + g, at time t."""
+        if not self.colliders[i].kinematic:
+            return np.zeros((3, 3)), np.zeros(3)
+        M0 = self.matrix(i, t)
+        D = self.matrix(i, t + eps) @ np.linalg.inv(M0)
+        return (D[:3, :3] - np.eye(3)) / eps, D[:3, 3] / eps

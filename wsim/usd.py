@@ -32,7 +32,7 @@ from wsim.errors import InvalidParameter, OutputError
 
 if TYPE_CHECKING:
     from wsim.body import Body
-    from wsim.colliders import Collider
+    from wsim.colliders import Surfaces
 
 USD_EXTENSIONS = (".usd", ".usda", ".usdc")
 
@@ -106,11 +106,15 @@ class UsdWriter:
         self._meshes: dict[str, object] = {}
         self._kinematic: dict[str, object] = {}
 
-    def begin(self, bodies: Sequence[Body], colliders: Sequence[Collider], up: np.ndarray) -> None:
-        """Create the stage and every prim's static data (topology, static collider geometry)."""
+    def begin(self, bodies: Sequence[Body], surfaces: Surfaces) -> None:
+        """Create the stage and every prim's static data (topology, static collider geometry).
+
+        A static collider is written in stage coordinates; a kinematic one in its local
+        coordinates under a time-sampled transform (``write_frame``)."""
         from pxr import Sdf, Tf, Usd, UsdGeom, Vt
 
-        from wsim.colliders import GroundPlane, MeshCollider
+        colliders = surfaces.colliders
+        self._surfaces = surfaces
 
         stage = Usd.Stage.CreateInMemory()
         UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y if self.up_axis == "Y" else UsdGeom.Tokens.z)
@@ -123,7 +127,8 @@ class UsdWriter:
 
         def define_mesh(path: str, faces: np.ndarray, color: tuple[float, float, float]):
             mesh = UsdGeom.Mesh.Define(stage, Sdf.Path(path))
-            mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(faces), 3, dtype=np.int32)))
+            counts = np.full(len(faces), faces.shape[1], dtype=np.int32)  # triangles, or a ground quad
+            mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(counts))
             mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(faces, dtype=np.int32).ravel()))
             mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
             mesh.CreateDisplayColorAttr([tuple(color)])
@@ -142,36 +147,17 @@ class UsdWriter:
             self._meshes[path] = (body, define_mesh(path, body.faces, _BODY_COLOR))
         if colliders:
             UsdGeom.Scope.Define(stage, "/World/colliders")
-        for c, path in zip(colliders, collider_paths):
-            if isinstance(c, GroundPlane):
-                n = c.resolved_normal(up)
-                a = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
-                a /= np.linalg.norm(a)
-                b = np.cross(n, a)
-                half = 0.5 * c.size
-                quad = c.height * n + half * np.array([-a - b, a - b, a + b, -a + b])
-                # orient the quad so its normal is n (counter-clockwise seen from above)
-                if np.dot(np.cross(quad[1] - quad[0], quad[2] - quad[0]), n) < 0:
-                    quad = quad[::-1]
-                mesh = UsdGeom.Mesh.Define(stage, Sdf.Path(path))
-                mesh.CreateFaceVertexCountsAttr([4])
-                mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
-                mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-                mesh.CreateDisplayColorAttr([_COLLIDER_COLOR])
-                pts = quad @ self._R.T
-                mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts.astype(np.float32)))
-                mesh.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(np.array([pts.min(0), pts.max(0)], dtype=np.float32)))
-            elif isinstance(c, MeshCollider):
-                mesh = define_mesh(path, c.faces, _COLLIDER_COLOR)
-                mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(c.vertices.astype(np.float32)))
-                mesh.CreateExtentAttr(
-                    Vt.Vec3fArray.FromNumpy(np.array([c.vertices.min(0), c.vertices.max(0)], dtype=np.float32))
-                )
+        for i, (c, path) in enumerate(zip(colliders, collider_paths)):
+            points, faces = c.display_mesh(surfaces.up)
+            mesh = define_mesh(path, faces, _COLLIDER_COLOR)
+            if c.kinematic:
                 op = mesh.AddTransformOp()
-                if c.kinematic:
-                    self._kinematic[path] = (c, op)
-                else:
-                    op.Set(_to_usd_matrix(self._A @ c.matrix(0.0)))
+                self._kinematic[path] = (i, op)
+            else:
+                points = points @ surfaces.matrix(i, 0.0)[:3, :3].T + surfaces.matrix(i, 0.0)[:3, 3]
+                points = points @ self._R.T
+            mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(points.astype(np.float32)))
+            mesh.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(np.array([points.min(0), points.max(0)], dtype=np.float32)))
         self._stage = stage
 
     def write_frame(self, frame: int, time: float) -> None:
@@ -185,8 +171,8 @@ class UsdWriter:
             pts = body.points() @ self._R.T
             mesh.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(pts.astype(np.float32)), code)
             mesh.GetExtentAttr().Set(Vt.Vec3fArray.FromNumpy(np.array([pts.min(0), pts.max(0)], dtype=np.float32)), code)
-        for c, op in self._kinematic.values():
-            op.Set(_to_usd_matrix(self._A @ c.matrix(time)), code)
+        for i, op in self._kinematic.values():
+            op.Set(_to_usd_matrix(self._A @ self._surfaces.matrix(i, time)), code)
         self._first = frame if self._first is None else self._first
         self._last = frame
 

@@ -46,3 +46,11 @@ def as_rotation(value: object, what: str) -> np.ndarray:
             or np.linalg.det(R) <= 0.0:
         raise InvalidParameter(f"{what} must be a proper 3x3 rotation matrix")
     return R
+
+
+def positive_int(value: object, what: str, minimum: int = 1) -> int:
+    """``value`` as an int >= ``minimum`` (bools refused: ``True`` is not a count), or InvalidParameter
+    naming ``what``."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise InvalidParameter(f"{what} = {value!r} must be an integer >= {minimum}")
+    return int(value)

@@ -17,8 +17,8 @@ from typing import Callable, Sequence
 import numpy as np
 
 from wsim.body import Body
-from wsim.validate import as_vec3
-from wsim.colliders import Collider
+from wsim.validate import as_vec3, positive_int
+from wsim.colliders import Collider, Surfaces
 from wsim.device import resolve_device
 from wsim.errors import InvalidParameter
 from wsim.usd import UsdWriter, check_up_axis
@@ -79,6 +79,7 @@ class World:
         self.colliders: list[Collider] = []
         self.frame = 0
         self._bound = False
+        self.surfaces: Surfaces | None = None  # the colliders as kinematic surfaces, made at the first step
 
     @property
     def frame_dt(self) -> float:
@@ -115,8 +116,9 @@ class World:
 
     def _bind(self) -> None:
         if not self._bound:
+            self.surfaces = Surfaces(self.colliders, self.up)
             for body in self.bodies:
-                body.attach_colliders(self.colliders)
+                body.attach_colliders(self.surfaces)
             self._bound = True
 
     def step(self) -> None:
@@ -128,6 +130,7 @@ class World:
         self._bind()
         t0 = self.frame / self.fps
         t1 = (self.frame + 1) / self.fps
+        self.surfaces.new_frame()
         for body in self.bodies:
             body.advance(t0, t1)
         self.frame += 1
@@ -151,15 +154,14 @@ class World:
         or the run is interrupted, the frames computed so far are written and the error re-raised.
         ``on_frame(world)`` is called after each frame, before it is written (for scripted events).
         """
-        if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 1:
-            raise InvalidParameter(f"World.run: frames = {frames!r} must be an integer >= 1")
+        frames = positive_int(frames, "World.run: frames")
         writer = UsdWriter(out, self.fps, up_axis or self.up_axis, self.up_axis) if out is not None else None
         self._bind()
         start = _time.perf_counter()
         done = 0
         try:
             if writer is not None:
-                writer.begin(self.bodies, self.colliders, self.up)
+                writer.begin(self.bodies, self.surfaces)
                 writer.write_frame(self.frame, self.time)
             from tqdm import tqdm
 

@@ -20,7 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from wsim.bem.fundamental import cross_matrix, inverse_speeds
+from wsim.bem.fundamental import inverse_speeds
+from wsim.rigid import cross_matrix
 from wsim.bem.mass import mass_properties
 from wsim.bem.quadrature import Quadrature, quadrature_from
 from wsim.bem.surface import BemSurface, free_term, prepare_surface
@@ -28,7 +29,7 @@ from wsim.device import resolve_device
 from wsim.errors import InvalidParameter
 from wsim.kernels import bem_assembly as ka
 from wsim.materials import ElasticMaterial
-from wsim.pbd.colouring import colour_constraints
+from wsim.colouring import colour_constraints
 
 #: triangles per thread on CUDA (one thread: one row, a chunk of one colour's triangles)
 CUDA_CHUNK = 8

@@ -9,7 +9,7 @@ Per step n (length dt, fixed by the operators):
 3. u_n = H_0^-1 G' p_n + H_0^-1 h_n (Eq. 12); with ``frame_update=False`` the frame stays fixed
    and Eq. (9) is solved with a = 0, alpha = 0 instead (the paper's comparison run, Fig. 5);
 4. error correction (Sec. 3.2.1, ``wsim.bem.correction``): rigid drift moves from u_n to a_n, alpha_n;
-5. frame update (Eq. 11, ``wsim.bem.frame``) with a_n = g' + a_ext + da, alpha_n = alpha_ext + dalpha.
+5. frame update (Eq. 11, ``wsim.rigid``) with a_n = g' + a_ext + da, alpha_n = alpha_ext + dalpha.
 
 World-space surface points are R (x + u) + T. Steps 1 and 3 run on the body's Warp device
 (``wsim.bem.stepper``); 2, 4 and 5 are O(N) host work in float64.
@@ -26,7 +26,7 @@ import warp as wp
 
 from wsim import mesh as wmesh
 from wsim.bem import stepper
-from wsim.bem.frame import RigidFrame
+from wsim.rigid import RigidFrame
 from wsim.bem.mass import mass_properties
 from wsim.bem.operators import PRECISIONS, BemOperators, build_operators
 from wsim.bem.surface import prepare_surface

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from wsim.bem.frame import nearest_rotation
+from wsim.rigid import nearest_rotation
 from wsim.bem.surface import BemSurface
 
 _CHUNK = 2048  # columns of H_0 promoted to float64 at a time

@@ -33,6 +33,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from wsim.rigid import cross_matrix
+
 #: below this |z| phi(z) uses its Taylor series (relative error < 1e-16 with 16 terms)
 PHI_SERIES_LIMIT = 0.5
 _PHI_TERMS = 16
@@ -131,15 +133,6 @@ def d_hat(x: np.ndarray, y: np.ndarray, n: np.ndarray, s: complex, material) -> 
     dn = np.einsum("...i,...i->...", d, n)
     out = Phi[..., None, None] * d[..., :, None] * n[..., None, :] + (dn * a2**2 * p2)[..., None, None] * np.eye(3)
     return out / (4.0 * np.pi)
-
-
-def cross_matrix(v: np.ndarray) -> np.ndarray:
-    """[v]x with [v]x w = v x w, for (..., 3) arrays."""
-    z = np.zeros(v.shape[:-1])
-    return np.stack(
-        [np.stack([z, -v[..., 2], v[..., 1]], -1), np.stack([v[..., 2], z, -v[..., 0]], -1), np.stack([-v[..., 1], v[..., 0], z], -1)],
-        axis=-2,
-    )
 
 
 def q_hat(x: np.ndarray, y: np.ndarray, n: np.ndarray, s: complex, material, x_bar: np.ndarray) -> np.ndarray:

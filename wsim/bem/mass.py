@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from wsim.bem.fundamental import cross_matrix
+from wsim.rigid import cross_matrix
 from wsim.bem.surface import BemSurface
 
 

@@ -37,7 +37,7 @@ from wsim.cache import OperatorCache, content_key
 from wsim.errors import InvalidParameter
 from wsim.kernels import bem_assembly as ka
 from wsim.materials import ElasticMaterial
-from wsim.validate import finite_number
+from wsim.validate import finite_number, positive_int
 
 #: bump when the stored arrays or their meaning change
 FORMAT_VERSION = 1
@@ -195,8 +195,8 @@ def build_operators(
     r_max = surface_diameter(surface.nodes)
     if n_max is None:
         n_max = cq.n_max_for(r_max, material.c2, dt)
-    elif not isinstance(n_max, (int, np.integer)) or n_max < 1:
-        raise InvalidParameter(f"n_max = {n_max!r} must be an integer >= 1")
+    else:
+        n_max = positive_int(n_max, "n_max")
     timings["surface"] = time.perf_counter() - t_start
 
     def build() -> dict[str, np.ndarray]:

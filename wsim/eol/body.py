@@ -37,10 +37,10 @@ import numpy as np
 import warp as wp
 
 from wsim import mesh as wmesh
-from wsim.bem.frame import rodrigues
-from wsim.bem.fundamental import cross_matrix
+from wsim.rigid import rodrigues
+from wsim.rigid import cross_matrix
 from wsim.body import Body
-from wsim.colliders import GroundPlane, MeshCollider
+from wsim.colliders import Surfaces
 from wsim.eol.advection import advect_arrays, check_scheme
 from wsim.eol.contact import ContactRows, ContactSystem, block_nodes, rows_from_blocks, solve_contact, surface_samples
 from wsim.eol.grid import make_grid, material_samples
@@ -379,11 +379,11 @@ class EolBody(Body):
         self._bound = True
         self._force_pass()
 
-    def attach_colliders(self, colliders: Sequence[Collider]) -> None:
-        for c in colliders:
-            if not isinstance(c, (GroundPlane, MeshCollider)):
-                raise InvalidParameter(f"body '{self.name}': unsupported collider {type(c).__name__}")
-        self._colliders = list(colliders)
+    def attach_colliders(self, surfaces: Surfaces | Sequence[Collider]) -> None:
+        if not isinstance(surfaces, Surfaces):  # a bare list (tests drive a body without a World)
+            surfaces = Surfaces(surfaces, self._up)
+        self._surfaces = surfaces
+        self._colliders = list(surfaces)
         if self._colliders:  # contact samples and row accumulators, only for a scene with colliders
             face, bary, share = surface_samples(self._z_vertices, self._faces,
                                                 self._positive["contact_spacing"] * self.grid.h)
@@ -627,13 +627,15 @@ class EolBody(Body):
         surf = self._surface
         surf.F, surf.T, surf.to_axes = _mat(self._F), wp.vec3d(*self._T), _mat(self._axes().T)
         for ci, col in enumerate(self._colliders):
-            if isinstance(col, GroundPlane):
-                nrm = col.resolved_normal(self._up)
+            plane = self._surfaces.plane(ci)
+            if plane is not None:
+                nrm, height = plane
                 wp.launch(kc.plane_rows, dim=surf.sample_face.shape[0], device=d,
-                          inputs=[surf, wp.vec3d(*nrm), wp.float64(col.height), ci, self._row_acc, self._row_flag])
+                          inputs=[surf, wp.vec3d(*nrm), wp.float64(height), ci, self._row_acc, self._row_flag])
             else:
-                M = col.matrix(self.time)
-                G, g = self._collider_velocity(col, M)
+                M = self._surfaces.matrix(ci, self.time)
+                # world velocity of the collider's material, over a short interval
+                G, g = self._surfaces.velocity(ci, self.time, max(1e-6, 1e-3 * self._dt_prev))
                 wp.launch(kc.mesh_rows, dim=surf.sample_face.shape[0], device=d,
                           inputs=[surf, col.device_mesh(d).id, wp.mat44d(*np.linalg.inv(M).ravel()),
                                   _mat(M[:3, :3]), float(col.extent), _mat(G), wp.vec3d(*g), ci,
@@ -682,17 +684,6 @@ class EolBody(Body):
         ids = self._row_ids[:m].numpy().astype(np.int64)
         nodes = block_nodes(self.grid.node_shape, self.collision_block, self._ccells, ids)
         return rows_from_blocks(ids, self._row_packed[:m].numpy(), nodes, int(np.prod(self._ccells)))
-
-    def _collider_velocity(self, col: Collider, M0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(G, g) with the world velocity [m/s] of a kinematic collider's material v = G x + g (a
-        finite difference of its matrix M0 at the body's time over a short interval; zero for a
-        static one)."""
-        if not getattr(col, "kinematic", False):
-            return np.zeros((3, 3)), np.zeros(3)
-        eps = max(1e-6, 1e-3 * self._dt_prev)
-        M1 = col.matrix(self.time + eps)
-        D = M1 @ np.linalg.inv(M0)
-        return (D[:3, :3] - np.eye(3)) / eps, D[:3, 3] / eps
 
 
 def _mat(M: np.ndarray) -> wp.mat33d:

@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from wsim.errors import InvalidParameter
 from wsim.kernels import eol_grid as kg
+from wsim.validate import positive_int
 
 # 8 corners of a cell in (i, j, k) offsets; the trilinear weight of corner c at local (a, b, c)
 CORNERS = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.int64)
@@ -73,8 +73,7 @@ class EolGrid:
 def make_grid(vertices: np.ndarray, resolution: int, padding: int = 1) -> EolGrid:
     """A grid whose longest side of the body's bounding box spans ``resolution`` cells, plus
     ``padding`` empty cells on every side (room to deform), centred on the box."""
-    if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)) or resolution < 4:
-        raise InvalidParameter(f"EoL grid resolution = {resolution!r} must be an integer >= 4")
+    positive_int(resolution, "EoL grid resolution", 4)
     v = np.asarray(vertices, dtype=np.float64)
     lo, hi = v.min(axis=0), v.max(axis=0)
     h = float(np.max(hi - lo)) / int(resolution)

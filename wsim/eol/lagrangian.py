@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from wsim.bem.fundamental import cross_matrix
+from wsim.rigid import cross_matrix
 from wsim.eol.grid import EolGrid, MaterialSamples
 
 KINDS = {"rigid": 6, "affine": 12}

@@ -27,11 +27,11 @@ import warp as wp
 from wsim import mesh as wmesh
 from wsim.body import Body
 from wsim.cache import OperatorCache
-from wsim.colliders import Collider, GroundPlane, MeshCollider
+from wsim.colliders import Surfaces
 from wsim.errors import InvalidParameter, SimulationDiverged
 from wsim.handles import Handle, as_indices
-from wsim.validate import as_vec3, finite_number
-from wsim.kernels import contact as kc
+from wsim.validate import as_vec3, finite_number, positive_int
+from wsim.kernels import pbd_contact as kc
 from wsim.kernels import pbd as kp
 from wsim.materials import ElasticMaterial
 from wsim.pbd.model import MODEL_FORMAT_VERSION, ConstraintFamily, PbdModel, build_model
@@ -52,19 +52,14 @@ class _DeviceFamily:
 
 @dataclass
 class _DeviceMeshCollider:
-    collider: MeshCollider
+    index: int  # in the World's Surfaces
+    friction: float
     mesh: wp.Mesh
     transforms: wp.array  # (S + 1,) mat44 on device
     inverses: wp.array
     host_transforms: np.ndarray  # (S + 1, 4, 4) float32 staging
     host_inverses: np.ndarray
     max_dist: float
-
-
-def _positive_int(value: int, what: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-        raise InvalidParameter(f"{what} = {value!r} must be an integer >= 1")
-    return int(value)
 
 
 class PbdBody(Body):
@@ -158,10 +153,10 @@ class PbdBody(Body):
             if not math.isfinite(dt) or dt <= 0.0:
                 raise InvalidParameter(f"body '{name}': dt = {dt} s must be > 0")
         self.dt = dt
-        self.substeps = _positive_int(substeps, f"body '{name}': substeps") if substeps is not None else None
+        self.substeps = positive_int(substeps, f"body '{name}': substeps") if substeps is not None else None
         if dt is None and substeps is None:
             self.substeps = 10
-        self.iterations = _positive_int(iterations, f"body '{name}': iterations")
+        self.iterations = positive_int(iterations, f"body '{name}': iterations")
         self.damping = finite_number(damping, f"body '{name}': damping [s]")
         self.drag = finite_number(drag, f"body '{name}': drag [1/s]")
         for what, val in (("damping", self.damping), ("drag", self.drag)):
@@ -362,15 +357,23 @@ class PbdBody(Body):
             slots[self._handle_idx] = np.arange(len(self._handle_idx), dtype=np.int32)
             self._handle_slot = wp.array(slots, dtype=int)
             self._handle_targets_d = wp.zeros(1, dtype=wp.vec3)  # replaced by the frame layout when handles exist
-        self._planes: list[tuple[np.ndarray, GroundPlane]] = []
-        self._mesh_colliders_src: list[MeshCollider] = []
+        self._planes: list[tuple[np.ndarray, float, float]] = []  # (normal, height, friction)
+        self._surfaces: Surfaces | None = None
+        self._mesh_surfaces: list[int] = []
         self._mesh_colliders: list[_DeviceMeshCollider] = []
         self._layout: tuple[int, float] | None = None
         self._graph = None
 
-    def attach_colliders(self, colliders: Sequence[Collider]) -> None:
-        self._planes = [(c.resolved_normal(self._up), c) for c in colliders if isinstance(c, GroundPlane)]
-        self._mesh_colliders_src = [c for c in colliders if isinstance(c, MeshCollider)]
+    def attach_colliders(self, surfaces: Surfaces) -> None:
+        self._surfaces = surfaces
+        self._planes = []
+        self._mesh_surfaces = []
+        for i, c in enumerate(surfaces):
+            plane = surfaces.plane(i)
+            if plane is not None:
+                self._planes.append((plane[0], plane[1], c.friction))
+            else:
+                self._mesh_surfaces.append(i)
         self._layout = None  # rebuild the per-frame buffers and the CUDA graph
 
     def _upload_family(self, f: ConstraintFamily, lam: wp.array) -> _DeviceFamily:
@@ -394,10 +397,12 @@ class PbdBody(Body):
                 self._handle_targets_d = wp.zeros(substeps * k, dtype=wp.vec3)
                 self._handle_targets_h = wp.zeros(substeps * k, dtype=wp.vec3, device="cpu", pinned=device.is_cuda)
             self._mesh_colliders = []
-            for c in self._mesh_colliders_src:
+            for i in self._mesh_surfaces:
+                c = self._surfaces[i]
                 self._mesh_colliders.append(
                     _DeviceMeshCollider(
-                        collider=c,
+                        index=i,
+                        friction=c.friction,
                         mesh=c.device_mesh(device),
                         transforms=wp.zeros(substeps + 1, dtype=wp.mat44),
                         inverses=wp.zeros(substeps + 1, dtype=wp.mat44),
@@ -444,7 +449,7 @@ class PbdBody(Body):
             wp.copy(self._handle_targets_d, self._handle_targets_h)
         for dc in self._mesh_colliders:
             for s in range(substeps + 1):
-                M = dc.collider.matrix(t0 + s * h)
+                M = self._surfaces.matrix(dc.index, t0 + s * h)
                 dc.host_transforms[s] = M
                 dc.host_inverses[s] = np.linalg.inv(M)
             dc.transforms.assign(dc.host_transforms)
@@ -501,17 +506,17 @@ class PbdBody(Body):
                             wp.float64(h),
                         ],
                     )
-                for normal, plane in self._planes:
+                for normal, height, friction in self._planes:
                     wp.launch(
                         kc.ground_contact,
                         dim=n,
-                        inputs=[self.x, self.x_prev, self.x_pred, self.inv_mass, wp.vec3(*normal.astype(np.float32)), plane.height, self.contact_margin, plane.friction],
+                        inputs=[self.x, self.x_prev, self.x_pred, self.inv_mass, wp.vec3(*normal.astype(np.float32)), height, self.contact_margin, friction],
                     )
                 for dc in self._mesh_colliders:
                     wp.launch(
                         kc.mesh_contact,
                         dim=n,
-                        inputs=[self.x, self.x_prev, self.x_pred, self.inv_mass, dc.mesh.id, dc.transforms, dc.inverses, s, self.contact_margin, dc.max_dist, dc.collider.friction],
+                        inputs=[self.x, self.x_prev, self.x_pred, self.inv_mass, dc.mesh.id, dc.transforms, dc.inverses, s, self.contact_margin, dc.max_dist, dc.friction],
                     )
             wp.launch(kp.update_velocities, dim=n, inputs=[self.x, self.x_pred, self.v, 1.0 / h])
 

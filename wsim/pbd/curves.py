@@ -25,6 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from wsim.errors import InvalidParameter
+from wsim.validate import positive_int
 
 
 @dataclass(frozen=True)
@@ -77,8 +78,7 @@ def auto_curves(rest: np.ndarray, points_per_curve: int = 12) -> list[Curve]:
     into consecutive open curves of at most ``points_per_curve`` vertices (fewer vertices per
     curve: smaller fit error, more stored coefficients).
     """
-    if isinstance(points_per_curve, bool) or not isinstance(points_per_curve, (int, np.integer)) or points_per_curve < 2:
-        raise InvalidParameter(f"points_per_curve = {points_per_curve!r} must be an integer >= 2")
+    positive_int(points_per_curve, "points_per_curve", 2)
     rest = np.asarray(rest, dtype=np.float64)
     if len(rest) < 2:
         return [Curve(np.arange(len(rest)), False)] if len(rest) else []

@@ -37,6 +37,7 @@ from typing import Sequence
 import numpy as np
 
 from wsim.errors import InvalidParameter
+from wsim.validate import positive_int
 from wsim.pbd import baselines, pde
 from wsim.pbd.curves import Curve, auto_curves, chord_parameters, paper_parameters, validate_curves
 
@@ -51,8 +52,7 @@ M_GRID_SINH = np.linspace(0.4, 12.0, 30)
 
 def keyframe_indices(n_frames: int, stride: int) -> np.ndarray:
     """Frames 0, K, 2K, ... and the last frame."""
-    if isinstance(stride, bool) or not isinstance(stride, (int, np.integer)) or stride < 1:
-        raise InvalidParameter(f"stride = {stride!r} must be an integer >= 1")
+    positive_int(stride, "stride")
     if n_frames < 2:
         raise InvalidParameter(f"a reconstruction needs at least 2 keyframes, got {n_frames} frame(s)")
     k = np.arange(0, n_frames, stride)

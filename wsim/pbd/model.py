@@ -33,7 +33,7 @@ import numpy as np
 from wsim import mesh as wmesh
 from wsim.errors import InvalidMesh, InvalidParameter
 from wsim.materials import ElasticMaterial
-from wsim.pbd.colouring import colour_constraints
+from wsim.colouring import colour_constraints
 
 #: Bump whenever the arrays or their meaning change, so cached models are rebuilt.
 MODEL_FORMAT_VERSION = 1

@@ -1,13 +1,20 @@
-"""The rigid reference frame that carries a BEM body (paper Eq. 11).
+"""Rigid-frame maths shared by every method: skew matrices, rotations, and the moving frame.
 
-The frame's origin is the body's centre of mass and its axes are the body axes; accelerations
-(a, alpha) are in body coordinates, the frame's position T, velocity T_dot, angular velocity
-omega and rotation R in world coordinates. One step of Eq. (11):
+A body frame has rotation R (body -> world), origin T (the centre of mass, world), velocity
+T_dot and angular velocity omega (world). One explicit step of length dt, with the new
+velocities already known (symplectic Euler, the order of the BEM paper's Eq. 11f-g and of the
+EoL pose update of Algorithm 1):
+
+    T_k = T_{k-1} + dt T_dot_k                                   (11f)
+    R_k = exp(dt [omega_k]x) R_{k-1}   (Rodrigues)               (11g)
+
+``advance_pose`` is that step; every method that carries a rigid frame calls it.
+
+``RigidFrame`` is the BEM body's frame state (paper Eq. 11), with the accelerations (a, alpha)
+in body coordinates:
 
     T_dot_k = T_dot_{k-1} + dt R_{k-1} a_k                       (11d; R a = g + R a_ext since g' = R^T g)
     omega_k = omega_{k-1} + dt R_{k-1} alpha_k                    (11e)
-    T_k     = T_{k-1} + dt T_dot_k                                 (11f)
-    R_k     = exp(dt [omega_k]x) R_{k-1}   (Rodrigues)             (11g)
 
 With ``gyroscopic=True`` (default) (11e) is replaced by its torque-free-correct form: the world
 angular momentum L_k = L_{k-1} + dt R_{k-1} I alpha_k is integrated and omega_k = R_{k-1} I^-1
@@ -22,7 +29,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from wsim.bem.fundamental import cross_matrix
+
+def cross_matrix(v: np.ndarray) -> np.ndarray:
+    """[v]x with [v]x w = v x w, for (..., 3) arrays."""
+    v = np.asarray(v)
+    z = np.zeros(v.shape[:-1])
+    return np.stack(
+        [np.stack([z, -v[..., 2], v[..., 1]], -1), np.stack([v[..., 2], z, -v[..., 0]], -1), np.stack([-v[..., 1], v[..., 0], z], -1)],
+        axis=-2,
+    )
 
 
 def rodrigues(phi: np.ndarray) -> np.ndarray:
@@ -40,6 +55,13 @@ def nearest_rotation(m: np.ndarray) -> np.ndarray:
     u, _, vt = np.linalg.svd(m)
     d = np.sign(np.linalg.det(u @ vt)) or 1.0
     return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def advance_pose(R: np.ndarray, T: np.ndarray, velocity: np.ndarray, omega: np.ndarray,
+                 dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """(R_k, T_k) of Eq. (11f-g): the frame moved for dt at the new world velocity and angular
+    velocity (``omega`` in world axes)."""
+    return rodrigues(dt * np.asarray(omega)) @ R, T + dt * np.asarray(velocity)
 
 
 @dataclass
@@ -77,8 +99,7 @@ class RigidFrame:
         else:
             self.omega = self.omega + dt * (R @ alpha_body)
             self.L = R @ inertia @ R.T @ self.omega
-        self.T = self.T + dt * self.velocity
-        self.R = rodrigues(dt * self.omega) @ R
+        self.R, self.T = advance_pose(R, self.T, self.velocity, self.omega, dt)
 
     def reorthonormalize(self) -> None:
         """Remove the round-off that repeated products leave in R."""
