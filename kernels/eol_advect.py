@@ -12,22 +12,21 @@ from __future__ import annotations
 
 import warp as wp
 
-from wsim.kernels.eol_grid import cell_of, corner_value, grid_coordinates, sample_trilinear
+from wsim.kernels.eol_grid import Grid, cell_of, corner_value, grid_coordinates, node_at, sample_trilinear
 
 
 @wp.kernel
 def semi_lagrangian(
     q: wp.array3d(dtype=wp.vec3d),
     v: wp.array3d(dtype=wp.vec3d),
-    origin: wp.vec3d,
-    h: wp.float64,
+    grid: Grid,
     dt: wp.float64,
     out: wp.array3d(dtype=wp.vec3d),
 ):
     """out_s = q(y_s - dt v_s): one first-order step of dq/dt + v . grad q = 0 (Eq. 15)."""
     i, j, k = wp.tid()
-    y = origin + h * wp.vec3d(wp.float64(i), wp.float64(j), wp.float64(k))
-    out[i, j, k] = sample_trilinear(q, y - dt * v[i, j, k], origin, h)
+    y = node_at(grid, i, j, k)
+    out[i, j, k] = sample_trilinear(q, y - dt * v[i, j, k], grid)
 
 
 @wp.kernel
@@ -42,8 +41,7 @@ def semi_lagrangian_limited(
     q: wp.array3d(dtype=wp.vec3d),
     bound: wp.array3d(dtype=wp.vec3d),
     v: wp.array3d(dtype=wp.vec3d),
-    origin: wp.vec3d,
-    h: wp.float64,
+    grid: Grid,
     dt: wp.float64,
     out: wp.array3d(dtype=wp.vec3d),
 ):
@@ -51,9 +49,9 @@ def semi_lagrangian_limited(
     component to the range of ``bound`` (the field before advection) over the foot point's cell, so
     the scheme adds no new extrema (unlimited BFECC overshoots where v* jumps, e.g. at a contact)."""
     i, j, k = wp.tid()
-    p = origin + h * wp.vec3d(wp.float64(i), wp.float64(j), wp.float64(k)) - dt * v[i, j, k]
-    value = sample_trilinear(q, p, origin, h)
-    g = grid_coordinates(bound, p, origin, h)
+    p = node_at(grid, i, j, k) - dt * v[i, j, k]
+    value = sample_trilinear(q, p, grid)
+    g = grid_coordinates(bound, p, grid)
     cell = cell_of(bound, g)
     lo = corner_value(bound, cell, 0)
     hi = lo

@@ -29,15 +29,15 @@ from __future__ import annotations
 
 import warp as wp
 
-from wsim.kernels.eol_grid import corner_weight
+from wsim.kernels.eol_grid import Grid, corner_weight
 
 
 @wp.struct
 class ContactSurface:
     """The body's contact samples and where their rows go: the tracked intermediate vertices y and
     faces, the samples (face, barycentric, area share), the Lagrangian map x = F y + T, the world
-    -> velocity-axes rotation, 1 / tau, the body's grid (origin, h, cells) and the collision grid
-    (``block`` cells per collision cell, ``ccells`` collision cells per axis)."""
+    -> velocity-axes rotation, 1 / tau, the body's grid (a ``Grid``: nodes per axis, origin, h) and
+    the collision grid (``block`` cells per collision cell, ``ccells`` collision cells per axis)."""
 
     y: wp.array(dtype=wp.vec3d)
     faces: wp.array(dtype=wp.vec3i)
@@ -48,9 +48,7 @@ class ContactSurface:
     T: wp.vec3d
     to_axes: wp.mat33d
     inv_tau: wp.float64
-    origin: wp.vec3d
-    h: wp.float64
-    cells: wp.vec3i
+    grid: Grid
     block: int
     ccells: wp.vec3i
 
@@ -75,12 +73,13 @@ def sample_world(surf: ContactSurface, i: int):
 def accumulate_row(acc: wp.array2d(dtype=wp.float64), flag: wp.array(dtype=wp.int32), surf: ContactSurface,
                    collider: int, yp: wp.vec3d, coeff: wp.vec3d, rhs: wp.float64, overlap: wp.float64):
     """Add one sample to its row: Phi_s(yp) coeff on the 8 nodes of its grid cell, rhs and overlap."""
-    g = (yp - surf.origin) / surf.h
+    g = (yp - surf.grid.origin) / surf.grid.h
+    cells = surf.grid.shape - wp.vec3i(1, 1, 1)
     cell = wp.vec3i()
     t = wp.vec3d()
     for d in range(3):
-        gd = wp.clamp(g[d], wp.float64(0.0), wp.float64(surf.cells[d]))
-        cell[d] = wp.min(int(gd), surf.cells[d] - 1)
+        gd = wp.clamp(g[d], wp.float64(0.0), wp.float64(cells[d]))
+        cell[d] = wp.min(int(gd), cells[d] - 1)
         t[d] = gd - wp.float64(cell[d])
     k = surf.block
     cc = wp.vec3i(cell[0] // k, cell[1] // k, cell[2] // k)
@@ -202,10 +201,10 @@ def slot_offset(slot: int, k1: int) -> wp.vec3i:
 def node_index(g: wp.vec3i, surf: ContactSurface) -> int:
     """Flat index of grid node g, or -1 past the grid (a block at the far edge of a grid not
     divisible by the block)."""
-    c = surf.cells
-    if g[0] > c[0] or g[1] > c[1] or g[2] > c[2]:
+    n = surf.grid.shape
+    if g[0] >= n[0] or g[1] >= n[1] or g[2] >= n[2]:
         return -1
-    return (g[0] * (c[1] + 1) + g[1]) * (c[2] + 1) + g[2]
+    return (g[0] * n[1] + g[1]) * n[2] + g[2]
 
 
 @wp.func

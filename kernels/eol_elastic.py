@@ -26,7 +26,15 @@ from __future__ import annotations
 
 import warp as wp
 
-from wsim.kernels.eol_grid import cell_of, corner_gradient, corner_weight, gradient_in_cell, grid_coordinates, local_coordinates
+from wsim.kernels.eol_grid import (
+    Grid,
+    cell_of,
+    corner_gradient,
+    corner_weight,
+    gradient_in_cell,
+    grid_coordinates,
+    local_coordinates,
+)
 
 # below this det F_e the element is treated as (nearly) inverted: ln J is evaluated at the floor
 J_FLOOR = 1.0e-6
@@ -51,8 +59,7 @@ def neo_hookean_energy(F: wp.mat33d, mu: wp.float64, lam: wp.float64) -> wp.floa
 @wp.kernel
 def sample_forces(
     z: wp.array3d(dtype=wp.vec3d),
-    origin: wp.vec3d,
-    h: wp.float64,
+    grid: Grid,
     y: wp.array(dtype=wp.vec3d),
     volume: wp.array(dtype=wp.float64),
     Fp_inv: wp.array(dtype=wp.mat33d),
@@ -67,7 +74,8 @@ def sample_forces(
 ):
     """One thread per material point: scatter g_s and m_s to its cell's 8 nodes, add w W to energy."""
     i = wp.tid()
-    g = grid_coordinates(z, y[i], origin, h)
+    h = grid.h
+    g = grid_coordinates(z, y[i], grid)
     cell = cell_of(z, g)
     t = local_coordinates(g, cell)
     G_inv = wp.inverse(gradient_in_cell(z, cell, t, h))

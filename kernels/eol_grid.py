@@ -2,12 +2,51 @@
 
 Cell corners are numbered c = 4 i + 2 j + k (i, j, k in {0, 1}), the order of ``wsim.eol.grid.CORNERS``.
 A nodal field is a (nx + 1, ny + 1, nz + 1) array of vec3d; points outside the grid box are
-clamped onto it.
+clamped onto it. Every EoL kernel takes the grid as one ``Grid`` struct (``grid_struct`` builds
+it from a ``wsim.eol.grid.EolGrid``).
 """
 
 from __future__ import annotations
 
+from typing import Any
+
+import numpy as np
 import warp as wp
+
+
+@wp.struct
+class Grid:
+    """The EoL grid on the device: ``shape`` nodes per axis (cells + 1), ``origin`` the (0, 0, 0)
+    node [m], ``h`` the cell size [m]. Node s = (i ny + j) nz + k sits at origin + h (i, j, k)."""
+
+    shape: wp.vec3i
+    origin: wp.vec3d
+    h: wp.float64
+
+
+def grid_struct(grid: Any) -> Grid:
+    """The ``Grid`` struct of an ``EolGrid`` (anything with ``node_shape``, ``origin`` and ``h``)."""
+    g = Grid()
+    g.shape = wp.vec3i(*(int(n) for n in grid.node_shape))
+    g.origin = wp.vec3d(*np.asarray(grid.origin, dtype=np.float64))
+    g.h = wp.float64(float(grid.h))
+    return g
+
+
+@wp.func
+def node_position(s: int, grid: Grid) -> wp.vec3d:
+    """Position of flat node s [m]."""
+    shape = grid.shape
+    i = s // (shape[1] * shape[2])
+    j = (s // shape[2]) % shape[1]
+    k = s % shape[2]
+    return grid.origin + grid.h * wp.vec3d(wp.float64(i), wp.float64(j), wp.float64(k))
+
+
+@wp.func
+def node_at(grid: Grid, i: int, j: int, k: int) -> wp.vec3d:
+    """Position of node (i, j, k) [m]."""
+    return grid.origin + grid.h * wp.vec3d(wp.float64(i), wp.float64(j), wp.float64(k))
 
 
 @wp.func
@@ -37,9 +76,9 @@ def corner_gradient(c: int, t: wp.vec3d, h: wp.float64) -> wp.vec3d:
 
 
 @wp.func
-def grid_coordinates(q: wp.array3d(dtype=wp.vec3d), p: wp.vec3d, origin: wp.vec3d, h: wp.float64) -> wp.vec3d:
+def grid_coordinates(q: wp.array3d(dtype=wp.vec3d), p: wp.vec3d, grid: Grid) -> wp.vec3d:
     """p in cell units, clamped into the grid box of the nodal field q."""
-    g = (p - origin) / h
+    g = (p - grid.origin) / grid.h
     zero = wp.float64(0.0)
     return wp.vec3d(wp.clamp(g[0], zero, wp.float64(q.shape[0] - 1)), wp.clamp(g[1], zero, wp.float64(q.shape[1] - 1)),
                     wp.clamp(g[2], zero, wp.float64(q.shape[2] - 1)))
@@ -64,9 +103,9 @@ def local_coordinates(g: wp.vec3d, cell: wp.vec3i) -> wp.vec3d:
 
 
 @wp.func
-def sample_trilinear(q: wp.array3d(dtype=wp.vec3d), p: wp.vec3d, origin: wp.vec3d, h: wp.float64) -> wp.vec3d:
+def sample_trilinear(q: wp.array3d(dtype=wp.vec3d), p: wp.vec3d, grid: Grid) -> wp.vec3d:
     """q at point p (trilinear; p clamped into the grid box)."""
-    g = grid_coordinates(q, p, origin, h)
+    g = grid_coordinates(q, p, grid)
     cell = cell_of(q, g)
     t = local_coordinates(g, cell)
     out = wp.vec3d()
@@ -85,18 +124,8 @@ def gradient_in_cell(q: wp.array3d(dtype=wp.vec3d), cell: wp.vec3i, t: wp.vec3d,
 
 
 @wp.func
-def sample_gradient(q: wp.array3d(dtype=wp.vec3d), p: wp.vec3d, origin: wp.vec3d, h: wp.float64) -> wp.mat33d:
+def sample_gradient(q: wp.array3d(dtype=wp.vec3d), p: wp.vec3d, grid: Grid) -> wp.mat33d:
     """grad_y q of the trilinear field at p (p clamped into the grid box, like ``sample_trilinear``)."""
-    g = grid_coordinates(q, p, origin, h)
+    g = grid_coordinates(q, p, grid)
     cell = cell_of(q, g)
-    return gradient_in_cell(q, cell, local_coordinates(g, cell), h)
-
-
-@wp.kernel
-def inside_mesh(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), inside: wp.array(dtype=wp.int32)):
-    """1 where the generalized winding number of the closed surface at the point exceeds 1/2
-    (Warp's fast winding number: exact triangle solid angles near the point, the dipole expansion
-    of far BVH clusters; 0/1 away from the surface, so the 1/2 threshold is robust)."""
-    i = wp.tid()
-    q = wp.mesh_query_point_sign_winding_number(mesh, points[i], 1.0e30, 2.0, 0.5)
-    inside[i] = wp.where(q.result and q.sign < 0.0, 1, 0)
+    return gradient_in_cell(q, cell, local_coordinates(g, cell), grid.h)

@@ -17,14 +17,13 @@ from __future__ import annotations
 
 import warp as wp
 
-from wsim.kernels.eol_grid import sample_gradient
+from wsim.kernels.eol_grid import Grid, sample_gradient
 
 
 @wp.kernel
 def plastic_flow(
     z: wp.array3d(dtype=wp.vec3d),
-    origin: wp.vec3d,
-    h: wp.float64,
+    grid: Grid,
     y: wp.array(dtype=wp.vec3d),
     F_L: wp.mat33d,
     mu: wp.float64,
@@ -36,7 +35,7 @@ def plastic_flow(
 ):
     """One thread per material point: Eqs. (35-37); ``flowing`` counts the points above yield."""
     i = wp.tid()
-    F = F_L * wp.inverse(sample_gradient(z, y[i], origin, h))
+    F = F_L * wp.inverse(sample_gradient(z, y[i], grid))
     Fe = F * Fp_inv[i]
     U = wp.mat33d()
     sig = wp.vec3d()

@@ -25,11 +25,13 @@ from __future__ import annotations
 import warp as wp
 
 from wsim.kernels.eol_grid import (
+    Grid,
     cell_of,
     corner_gradient,
     gradient_in_cell,
     grid_coordinates,
     local_coordinates,
+    node_position,
 )
 
 # threads of the chunked reductions: each sums every chunks-th node (a grid-stride loop, so a warp
@@ -41,22 +43,12 @@ CHUNKS_CPU = 256
 CHUNKS_CUDA = 1024
 
 
-@wp.func
-def node_position(s: int, shape: wp.vec3i, origin: wp.vec3d, h: wp.float64) -> wp.vec3d:
-    i = s // (shape[1] * shape[2])
-    j = (s // shape[2]) % shape[1]
-    k = s % shape[2]
-    return origin + h * wp.vec3d(wp.float64(i), wp.float64(j), wp.float64(k))
-
-
 @wp.kernel
 def node_velocities(
     v: wp.array(dtype=wp.vec3d),
     mass: wp.array(dtype=wp.float64),
     forces: wp.array(dtype=wp.vec3d),
-    shape: wp.vec3i,
-    origin: wp.vec3d,
-    h: wp.float64,
+    grid: Grid,
     L: wp.mat33d,
     c: wp.vec3d,
     F_L: wp.mat33d,
@@ -71,7 +63,7 @@ def node_velocities(
         w[s] = wp.vec3d()
         a[s] = wp.vec3d()
         return
-    y = node_position(s, shape, origin, h)
+    y = node_position(s, grid)
     Ly = L * y
     w[s] = Ly + c + F_L * v[s]
     acc = forces[s] / mass[s] + gravity - wp.float64(2.0) * (L * v[s])
@@ -85,9 +77,7 @@ def velocity_moments(
     w0: wp.array(dtype=wp.vec3d),
     w1: wp.array(dtype=wp.vec3d),
     mass: wp.array(dtype=wp.float64),
-    shape: wp.vec3i,
-    origin: wp.vec3d,
-    h: wp.float64,
+    grid: Grid,
     weighted: int,
     chunks: int,
     out: wp.array(dtype=wp.float64),
@@ -104,7 +94,7 @@ def velocity_moments(
     one = wp.float64(1.0)
     for s in range(chunk, n, chunks):
         if mass[s] > wp.float64(0.0):
-            y = node_position(s, shape, origin, h)
+            y = node_position(s, grid)
             yb = wp.vec4d(y[0], y[1], y[2], one)
             m = one
             if weighted != 0:
@@ -126,9 +116,7 @@ def eulerian_residual(
     w0: wp.array(dtype=wp.vec3d),
     w1: wp.array(dtype=wp.vec3d),
     mass: wp.array(dtype=wp.float64),
-    shape: wp.vec3i,
-    origin: wp.vec3d,
-    h: wp.float64,
+    grid: Grid,
     L0: wp.mat33d,
     c0: wp.vec3d,
     L1: wp.mat33d,
@@ -146,7 +134,7 @@ def eulerian_residual(
     m1 = wp.vec3d()
     for s in range(chunk, n, chunks):
         if mass[s] > wp.float64(0.0):
-            y = node_position(s, shape, origin, h)
+            y = node_position(s, grid)
             a = F_L_inv * (w0[s] - L0 * y - c0)
             b = F_L_inv * (w1[s] - L1 * y - c1)
             v0[s] = a
@@ -209,8 +197,7 @@ def extrapolate(v: wp.array3d(dtype=wp.vec3d), mass: wp.array3d(dtype=wp.float64
 @wp.kernel
 def viscous_forces(
     w: wp.array3d(dtype=wp.vec3d),
-    origin: wp.vec3d,
-    h: wp.float64,
+    grid: Grid,
     y: wp.array(dtype=wp.vec3d),
     volume: wp.array(dtype=wp.float64),
     F_L_inv: wp.mat33d,
@@ -221,7 +208,8 @@ def viscous_forces(
     f_s = -sum_i w_i 2 eta D F_L^-T grad_y Phi_s(y_i) (material volume for spatial volume: small
     volume change). A rigid velocity field has D = 0: only deformation is damped."""
     i = wp.tid()
-    g = grid_coordinates(w, y[i], origin, h)
+    h = grid.h
+    g = grid_coordinates(w, y[i], grid)
     cell = cell_of(w, g)
     t = local_coordinates(g, cell)
     Gx = gradient_in_cell(w, cell, t, h) * F_L_inv

@@ -11,14 +11,13 @@ from __future__ import annotations
 
 import warp as wp
 
-from wsim.kernels.eol_grid import sample_gradient, sample_trilinear
+from wsim.kernels.eol_grid import Grid, sample_gradient, sample_trilinear
 
 
 @wp.kernel
 def track_surface(
     z_field: wp.array3d(dtype=wp.vec3d),
-    origin: wp.vec3d,
-    h: wp.float64,
+    grid: Grid,
     z_vertex: wp.array(dtype=wp.vec3d),
     guess: wp.array(dtype=wp.vec3d),
     tol: wp.float64,
@@ -30,10 +29,10 @@ def track_surface(
     v = wp.tid()
     p = guess[v]
     n = int(0)
-    e = z_vertex[v] - sample_trilinear(z_field, p, origin, h)
+    e = z_vertex[v] - sample_trilinear(z_field, p, grid)
     while wp.length(e) >= tol and n < max_iter:
-        p = p + wp.inverse(sample_gradient(z_field, p, origin, h)) * e
-        e = z_vertex[v] - sample_trilinear(z_field, p, origin, h)
+        p = p + wp.inverse(sample_gradient(z_field, p, grid)) * e
+        e = z_vertex[v] - sample_trilinear(z_field, p, grid)
         n += 1
     y_vertex[v] = p
     iterations[v] = wp.int32(n)

@@ -91,7 +91,7 @@ def run_case(name: str, device: str | None, precision: str, mesh_path: str | Non
         uncnst = _time(body.unconstrained_solve, 50, sync)  # UNCNST alone, no per-stage syncs
         so = body._so
         h = so.vectors()
-        hist = _time(lambda: stepper.history(so, body._U_k, body._P_k, body._B, body._step, h), 20, sync)
+        hist = _time(lambda: stepper.history(so, body._U_k, body._P_k, body.state.B, body.state.ring, h), 20, sync)
         hist_bytes = so.history_bytes
         matrix_bytes = so.matrix_bytes
         results[backend] = {

@@ -14,6 +14,7 @@ from wsim.body import Body
 from wsim.colliders import Collider, GroundPlane, MeshCollider
 from wsim.eol.body import EolBody, Plasticity
 from wsim.errors import (
+    CheckpointError,
     InvalidMaterial,
     InvalidMesh,
     InvalidParameter,
@@ -56,5 +57,6 @@ __all__ = [
     "InvalidParameter",
     "OutputError",
     "SimulationDiverged",
+    "CheckpointError",
     "__version__",
 ]

@@ -3,6 +3,14 @@
 A scene is a plain Python file that defines ``build(mesh=None, device=None) -> wsim.World`` and,
 optionally, ``FRAMES`` (its default frame count). It can also run standalone:
 ``python scenes/NAME.py -o out.usda`` through ``scene_main``, which takes the same options.
+
+Long runs: ``--checkpoint-every N`` saves the World's state every N frames (to ``--checkpoint``,
+default ``OUT.ckpt.h5``); ``--resume CKPT`` rebuilds the scene, restores the checkpoint and
+continues up to ``--frames`` (the animation's last frame, as in the first run). The resumed
+frames are appended to OUT when OUT is the file that run wrote (same prims and topology), so one
+file holds the whole animation, with frames after the checkpoint replaced; when OUT is missing or
+holds something else, a new file starts at the checkpoint's frame. Checkpoints keep being saved
+to the resumed file unless ``--checkpoint`` names another.
 """
 
 from __future__ import annotations
@@ -28,6 +36,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--up-axis", default=None, choices=["Y", "Z", "y", "z"], help="up axis of the USD stage (Z for Blender)")
     p.add_argument("--mesh", default=None, help="path of a mesh file to use instead of the scene's procedural shape")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    p.add_argument("--checkpoint", default=None, help="checkpoint file to save (default with --checkpoint-every: OUT.ckpt.h5)")
+    p.add_argument("--checkpoint-every", type=int, default=0, metavar="N", help="save a checkpoint every N frames (and at the end)")
+    p.add_argument("--resume", default=None, metavar="CKPT", help="continue from a checkpoint of this scene up to --frames")
 
 
 def _run(build: Callable[..., object], frames_default: int, name: str, args: argparse.Namespace) -> int:
@@ -46,7 +57,23 @@ def _run(build: Callable[..., object], frames_default: int, name: str, args: arg
             print(f"wsim: scene '{name}': build() must return a wsim.World, got {type(world).__name__}", file=sys.stderr)
             return 2
         frames = args.frames if args.frames is not None else frames_default
-        summary = world.run(frames, out, up_axis=args.up_axis.upper() if args.up_axis else None, progress=not args.no_progress)
+        checkpoint = args.checkpoint
+        if checkpoint is None and args.checkpoint_every:
+            checkpoint = f"{Path(out).with_suffix('')}.ckpt.h5"
+        if args.resume is not None:
+            start = world.restore(args.resume)
+            checkpoint = checkpoint or args.resume
+            if frames <= start:
+                print(f"wsim: checkpoint '{args.resume}' is at frame {start}; nothing to do up to frame {frames}",
+                      file=sys.stderr)
+                return 0
+            frames -= start
+        summary = world.run(frames, out, up_axis=args.up_axis.upper() if args.up_axis else None,
+                            progress=not args.no_progress, append=args.resume is not None,
+                            checkpoint=checkpoint, checkpoint_every=args.checkpoint_every)
+        if args.resume is not None:
+            how = "appended to" if summary.appended else "written as a new file (no earlier output of this scene) to"
+            resumed = f"wsim: resumed at frame {start}; frames {start}..{world.frame} {how} {summary.out}"
     except (WsimError, KeyboardInterrupt) as exc:
         reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else f"error: {exc}"
         print(f"wsim: {reason}", file=sys.stderr)
@@ -54,6 +81,8 @@ def _run(build: Callable[..., object], frames_default: int, name: str, args: arg
             print(f"wsim: frames computed before that are in {out}", file=sys.stderr)
         return 1 if isinstance(exc, WsimError) else 130
     print(summary)
+    if args.resume is not None:
+        print(resumed)
     return 0
 
 

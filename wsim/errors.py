@@ -48,3 +48,8 @@ class SimulationDiverged(WsimError, RuntimeError):
         if detail:
             msg += f"; {detail}"
         super().__init__(msg)
+
+
+class CheckpointError(WsimError, ValueError):
+    """A checkpoint cannot be restored: unreadable (truncated, not a wsim checkpoint), another format
+    version, or saved from another scene. The World it was loaded into is left unchanged."""

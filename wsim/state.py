@@ -11,7 +11,10 @@ This module turns such a dataclass into named numpy arrays and back, which is al
   dotted names (``frame.R``).
 
 Loading checks every array's shape and dtype against the live state first and changes nothing
-when one does not fit, so a bad file cannot leave a body half restored.
+when one does not fit, so a bad file cannot leave a body half restored. A state class may name
+host fields of variable length in a class attribute ``_ragged`` (e.g. ``("active_rows",)``): for
+those only the number of dimensions and the kind of dtype must match (the length may differ), and
+the saved values are cast to the live field's dtype.
 """
 
 from __future__ import annotations
@@ -71,6 +74,13 @@ def load_state_arrays(state: Any, arrays: dict[str, np.ndarray], what: str) -> N
     for name, owner, value, attr in leaves:
         saved = np.asarray(arrays[name])
         live = value.numpy() if isinstance(value, wp.array) else np.asarray(value)
+        if attr in getattr(type(owner), "_ragged", ()) and not isinstance(value, wp.array):
+            if saved.ndim != live.ndim or saved.dtype.kind != live.dtype.kind:
+                raise StateMismatch(
+                    f"{what}: saved '{name}' has {saved.ndim} dimensions and dtype {saved.dtype}, this body's has "
+                    f"{live.ndim} and {live.dtype}")
+            staged.append((owner, value, attr, saved.astype(live.dtype) if isinstance(value, np.ndarray) else saved))
+            continue
         if saved.shape != live.shape or saved.dtype != live.dtype:
             raise StateMismatch(
                 f"{what}: saved '{name}' has shape {saved.shape} and dtype {saved.dtype}, this body's has "

@@ -5,8 +5,10 @@ Layout of a written stage (default prim ``/World``):
 - ``/World/<body>``: Mesh; topology (faceVertexCounts/Indices) written once, ``points`` and
   ``extent`` time-sampled per frame; ``subdivisionScheme = none`` so DCC tools show the
   simulated polygons instead of a Catmull-Clark limit surface.
-- ``/World/colliders/<collider>``: Mesh; a kinematic collider's pose is a time-sampled
-  ``xformOp:transform``; a ground plane is a square quad.
+- ``/World/colliders/<collider>``: Mesh; a static collider's points are written in stage
+  coordinates; a kinematic collider's points are local and its pose a time-sampled
+  ``xformOp:transform``; a ground plane is a square quad. Colliders are read through the World's
+  ``Surfaces`` (``display_mesh`` and poses), whatever their type.
 
 Stage metadata: ``timeCodesPerSecond = framesPerSecond = fps``, start/end time codes = first and
 last written frames, ``metersPerUnit = 1`` (wsim is SI), ``upAxis`` Y or Z. The simulation is
@@ -16,7 +18,9 @@ by +-90 degrees about X, so a Y-up scene opens upright in Blender when written w
 The stage lives in memory while frames are added; ``close`` exports it to a temporary file in
 the target folder and renames it onto the target, so a reader never sees a half-written file and
 a run that stops early with an exception, Ctrl-C or (through the CLI) SIGTERM still leaves every
-frame computed so far. A process killed outright (SIGKILL, out of memory) writes nothing.
+frame computed so far. A process killed outright (SIGKILL, out of memory) writes nothing: run
+long jobs with checkpoints (``wsim run --checkpoint-every N``) and resume them; a resumed run
+continues the same file (``begin(append_from=frame)``).
 """
 
 from __future__ import annotations
@@ -105,16 +109,25 @@ class UsdWriter:
         self._last: int | None = None
         self._meshes: dict[str, object] = {}
         self._kinematic: dict[str, object] = {}
+        self.appended = False  # True when ``begin`` continued an existing file
 
-    def begin(self, bodies: Sequence[Body], surfaces: Surfaces) -> None:
+    def begin(self, bodies: Sequence[Body], surfaces: Surfaces, append_from: int | None = None) -> None:
         """Create the stage and every prim's static data (topology, static collider geometry).
 
         A static collider is written in stage coordinates; a kinematic one in its local
-        coordinates under a time-sampled transform (``write_frame``)."""
-        from pxr import Sdf, Tf, Usd, UsdGeom, Vt
+        coordinates under a time-sampled transform (``write_frame``). With ``append_from`` (a
+        frame) and an existing target that holds the same prims with the same topology (what an
+        earlier run of this scene wrote), that file is continued instead: its samples up to
+        ``append_from`` are kept, later ones dropped (they are about to be recomputed), and
+        ``appended`` is set. Otherwise a new stage is made."""
+        from pxr import Sdf, Usd, UsdGeom, Vt
 
         colliders = surfaces.colliders
         self._surfaces = surfaces
+        body_paths, collider_paths = self._prim_paths(bodies, colliders)
+        if append_from is not None and self.path.is_file():
+            if self._continue(bodies, body_paths, colliders, collider_paths, append_from):
+                return
 
         stage = Usd.Stage.CreateInMemory()
         UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y if self.up_axis == "Y" else UsdGeom.Tokens.z)
@@ -134,15 +147,6 @@ class UsdWriter:
             mesh.CreateDisplayColorAttr([tuple(color)])
             return mesh
 
-        # every prim path is decided (and checked for clashes) before anything is written
-        body_paths = [f"/World/{Tf.MakeValidIdentifier(b.name)}" for b in bodies]
-        collider_paths = [f"/World/colliders/{Tf.MakeValidIdentifier(c.name)}" for c in colliders]
-        seen: dict[str, str] = {"/World/colliders": "the colliders scope"} if colliders else {}
-        for path, what in [*zip(body_paths, (f"body '{b.name}'" for b in bodies)),
-                           *zip(collider_paths, (f"collider '{c.name}'" for c in colliders))]:
-            if path in seen:
-                raise InvalidParameter(f"{what} and {seen[path]} would both be written as USD prim {path}; rename one")
-            seen[path] = what
         for body, path in zip(bodies, body_paths):
             self._meshes[path] = (body, define_mesh(path, body.faces, _BODY_COLOR))
         if colliders:
@@ -159,6 +163,66 @@ class UsdWriter:
             mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(points.astype(np.float32)))
             mesh.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(np.array([points.min(0), points.max(0)], dtype=np.float32)))
         self._stage = stage
+
+    @staticmethod
+    def _prim_paths(bodies: Sequence[Body], colliders: Sequence[object]) -> tuple[list[str], list[str]]:
+        """Every prim path, decided (and checked for clashes) before anything is written."""
+        from pxr import Tf
+
+        body_paths = [f"/World/{Tf.MakeValidIdentifier(b.name)}" for b in bodies]
+        collider_paths = [f"/World/colliders/{Tf.MakeValidIdentifier(c.name)}" for c in colliders]
+        seen: dict[str, str] = {"/World/colliders": "the colliders scope"} if colliders else {}
+        for path, what in [*zip(body_paths, (f"body '{b.name}'" for b in bodies)),
+                           *zip(collider_paths, (f"collider '{c.name}'" for c in colliders))]:
+            if path in seen:
+                raise InvalidParameter(f"{what} and {seen[path]} would both be written as USD prim {path}; rename one")
+            seen[path] = what
+        return body_paths, collider_paths
+
+    def _continue(self, bodies: Sequence[Body], body_paths: list[str], colliders: Sequence[object],
+                  collider_paths: list[str], frame: int) -> bool:
+        """Open the existing target for appending after ``frame``; False (nothing kept) when it is
+        not a file of this scene: another up axis or fps, a prim missing, other topology."""
+        from pxr import Sdf, Usd, UsdGeom
+
+        try:
+            layer = Sdf.Layer.OpenAsAnonymous(str(self.path))  # a copy: the file changes only at close
+        except Exception:  # noqa: BLE001 - any unreadable file just means "write a new one"
+            return False
+        if layer is None:
+            return False
+        stage = Usd.Stage.Open(layer)
+        want_up = UsdGeom.Tokens.y if self.up_axis == "Y" else UsdGeom.Tokens.z
+        if UsdGeom.GetStageUpAxis(stage) != want_up or stage.GetTimeCodesPerSecond() != self.fps:
+            return False
+        meshes, kinematic = {}, {}
+        for body, path in zip(bodies, body_paths):
+            mesh = UsdGeom.Mesh(stage.GetPrimAtPath(path))
+            if not mesh or not np.array_equal(np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or []),
+                                              np.asarray(body.faces).ravel()):
+                return False
+            meshes[path] = (body, mesh)
+        for i, (c, path) in enumerate(zip(colliders, collider_paths)):
+            prim = stage.GetPrimAtPath(path)
+            if not prim:
+                return False
+            if c.kinematic:
+                ops = UsdGeom.Xformable(prim).GetOrderedXformOps()
+                if len(ops) != 1:
+                    return False
+                kinematic[path] = (i, ops[0])
+        # samples after the checkpoint frame are recomputed: drop them
+        attrs = [m.GetPointsAttr() for _, m in meshes.values()] + [m.GetExtentAttr() for _, m in meshes.values()]
+        attrs += [op.GetAttr() for _, op in kinematic.values()]
+        for attr in attrs:
+            for code in attr.GetTimeSamples():
+                if code > frame:
+                    attr.ClearAtTime(code)
+        start = stage.GetStartTimeCode() if stage.HasAuthoredTimeCodeRange() else float(frame)
+        self._stage, self._meshes, self._kinematic = stage, meshes, kinematic
+        self._first, self._last = int(round(min(start, frame))), frame
+        self.appended = True
+        return True
 
     def write_frame(self, frame: int, time: float) -> None:
         """Time-sample every body's points and extent, and kinematic collider poses, at ``frame``."""

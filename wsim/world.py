@@ -36,6 +36,7 @@ class RunSummary:
     out: Path | None
     device: str
     bodies: dict[str, int] = field(default_factory=dict)
+    appended: bool = False  # the frames were added to an existing file of this scene (``run(append=True)``)
 
     @property
     def seconds_per_frame(self) -> float:
@@ -121,6 +122,21 @@ class World:
                 body.attach_colliders(self.surfaces)
             self._bound = True
 
+    def checkpoint(self, path: str | Path) -> Path:
+        """Save the frame and every body's state to ``path`` (HDF5, written atomically; see
+        ``wsim.checkpoint``). Returns the path."""
+        from wsim import checkpoint
+
+        return checkpoint.save(self, path)
+
+    def restore(self, path: str | Path) -> int:
+        """Load a checkpoint saved by a World built by the same scene script (same bodies, settings
+        and colliders) and continue from its frame, which is returned. A file from another scene or
+        format version, or one that cannot be read, raises ``CheckpointError`` and changes nothing."""
+        from wsim import checkpoint
+
+        return checkpoint.restore(self, path)
+
     def step(self) -> None:
         """Advance every body by one frame (writes nothing). Raises SimulationDiverged on NaN/Inf."""
         self._advance_frame()
@@ -147,21 +163,38 @@ class World:
         up_axis: str | None = None,
         progress: bool = True,
         on_frame: Callable[[World], None] | None = None,
+        append: bool = False,
+        checkpoint: str | Path | None = None,
+        checkpoint_every: int = 0,
     ) -> RunSummary:
         """Simulate ``frames`` frames and write them (plus the starting frame) to ``out`` as USD.
 
         The output path is checked before any simulation. If a step fails (e.g. SimulationDiverged)
         or the run is interrupted, the frames computed so far are written and the error re-raised.
         ``on_frame(world)`` is called after each frame, before it is written (for scripted events).
+
+        ``append``: when ``out`` already holds this scene's prims (the file an earlier run of the same
+        scene wrote), keep its frames up to the World's current frame and add the new ones after
+        them (a resumed run: one file for the whole animation); otherwise a new file is written.
+        ``checkpoint``: a path saved to every ``checkpoint_every`` frames (0: only at the end of the
+        run), so a long run can be resumed (``restore``); after a failed step it holds the last
+        checkpoint written before the failure.
         """
         frames = positive_int(frames, "World.run: frames")
+        every = positive_int(checkpoint_every, "World.run: checkpoint_every", 0)
         writer = UsdWriter(out, self.fps, up_axis or self.up_axis, self.up_axis) if out is not None else None
+        if checkpoint is not None:
+            from wsim import checkpoint as ckpt
+
+            ckpt_path = Path(checkpoint).expanduser()
+            if ckpt_path.is_dir() or not (ckpt_path.parent if str(ckpt_path.parent) else Path(".")).is_dir():
+                raise InvalidParameter(f"World.run: checkpoint '{ckpt_path}' is a folder or its folder does not exist")
         self._bind()
         start = _time.perf_counter()
         done = 0
         try:
             if writer is not None:
-                writer.begin(self.bodies, self.surfaces)
+                writer.begin(self.bodies, self.surfaces, append_from=self.frame if append else None)
                 writer.write_frame(self.frame, self.time)
             from tqdm import tqdm
 
@@ -173,6 +206,10 @@ class World:
                 done += 1
                 if writer is not None:
                     writer.write_frame(self.frame, self.time)
+                if checkpoint is not None and every and done % every == 0:
+                    ckpt.save(self, ckpt_path)
+            if checkpoint is not None and not (every and done % every == 0):
+                ckpt.save(self, ckpt_path)
         finally:
             path = writer.close() if writer is not None else None
         return RunSummary(
@@ -181,5 +218,6 @@ class World:
             wall_seconds=_time.perf_counter() - start,
             out=path,
             device=self.device.alias,
+            appended=bool(writer is not None and writer.appended),
             bodies={b.name: int(b.faces.max()) + 1 if len(b.faces) else 0 for b in self.bodies},
         )

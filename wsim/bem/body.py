@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -39,6 +40,35 @@ from wsim.validate import as_rotation, as_vec3, finite_number
 
 TractionFn = Callable[[float], Any]
 STAGES = ("history", "loads", "solve", "correction", "frame")
+
+
+@dataclass
+class BemState:
+    """What changes when a BEM body steps (its operators never do).
+
+    Attributes:
+        U, P: (n_max, pitch) device rings of the last n_max displacements u and tractions p
+            (frame coordinates; row m holds step m mod n_max), in the storage precision.
+        B: (n_max, 6) device ring of [a - g', alpha] (Eq. 9's D_k, Q_k terms).
+        u: (3N,) this step's displacement, float64 on the host.
+        frame: the rigid frame (Eq. 11).
+        ring: ring index of the next step (offset by n_max so ring - k >= 0).
+        steps: steps taken.
+        last_loaded: last step with a nonzero traction (for the growth check).
+        window_peak, window_previous, window_growing: the growth check's running window.
+    """
+
+    U: wp.array
+    P: wp.array
+    B: wp.array
+    u: np.ndarray
+    frame: RigidFrame
+    ring: int
+    steps: int = 0
+    last_loaded: int = 0
+    window_peak: float = 0.0
+    window_previous: float = 0.0
+    window_growing: int = 0
 
 
 class BemBody(Body):
@@ -155,8 +185,6 @@ class BemBody(Body):
         # vertex <- mean of its nodes' displacements (double nodes share a vertex)
         self._node_count = np.bincount(surface.vertex, minlength=len(vertices)).astype(np.float64)
         self.timings: dict[str, float] = {k: 0.0 for k in STAGES}
-        self.steps = 0
-        self._bound = False
 
     # -- public read-outs -------------------------------------------------------------------
     @property
@@ -183,6 +211,11 @@ class BemBody(Body):
         return self._props.mass
 
     @property
+    def steps(self) -> int:
+        """Steps taken (0 before the body is added to a World)."""
+        return 0 if self.state is None else self.state.steps
+
+    @property
     def time(self) -> float:
         """Simulated time of the body's state [s]."""
         return self.steps * self.dt
@@ -190,28 +223,28 @@ class BemBody(Body):
     @property
     def frame(self) -> RigidFrame:
         self._require_bound()
-        return self._frame
+        return self.state.frame
 
     def displacement(self) -> np.ndarray:
         """(N_nodes, 3) current displacement in frame coordinates [m]."""
         self._require_bound()
-        return self._u.reshape(-1, 3).copy()
+        return self.state.u.reshape(-1, 3).copy()
 
     def vertex_displacement(self) -> np.ndarray:
         """(V, 3) current displacement per mesh vertex (double-node copies averaged), frame coordinates."""
-        u = self._u.reshape(-1, 3)
+        u = self.state.u.reshape(-1, 3)
         out = np.zeros((len(self._node_count), 3))
         np.add.at(out, self._surface.vertex, u)
         return out / self._node_count[:, None]
 
     def points(self) -> np.ndarray:
         self._require_bound()
-        f = self._frame
+        f = self.state.frame
         return (self.rest_vertices + self.vertex_displacement()) @ f.R.T + f.T
 
     def volume(self) -> float:
         """Enclosed volume of the deformed surface [m^3] (divergence theorem)."""
-        return wmesh.signed_volume(self._surface.nodes + self._u.reshape(-1, 3), self._surface.faces)
+        return wmesh.signed_volume(self._surface.nodes + self.state.u.reshape(-1, 3), self._surface.faces)
 
     def linear_momentum(self) -> np.ndarray:
         """m T_dot [kg m/s] (the frame carries the body's momentum; deformation momentum is not tracked)."""
@@ -253,10 +286,6 @@ class BemBody(Body):
         return p.reshape(-1)
 
     # -- World interface --------------------------------------------------------------------
-    def _require_bound(self) -> None:
-        if not self._bound:
-            raise InvalidParameter(f"body '{self.name}': add it to a World first (state is allocated there)")
-
     def bind(self, device: wp.Device, gravity: np.ndarray, up: np.ndarray) -> None:
         if self._ops is None:
             self._ops = build_operators(self._mesh, self.material, self.dt, device=device, **self._build_args)
@@ -270,11 +299,17 @@ class BemBody(Body):
             self.divergence_limit = ops.r_max
         n_max = ops.n_max
         # device state: rings of the last n_max steps and the step's vectors, rows of length pitch
-        self._U, self._P = so.vectors(n_max), so.vectors(n_max)
-        self._B = wp.zeros((n_max, 6), dtype=so.dtype, device=device)
+        # the rings are written in place on restore (set_state), so the vec4 views stay valid
+        self.state = BemState(
+            U=so.vectors(n_max), P=so.vectors(n_max), B=wp.zeros((n_max, 6), dtype=so.dtype, device=device),
+            u=np.zeros(so.size),
+            frame=RigidFrame.at_rest(self._R0, self._T0, self.initial_velocity, self.initial_angular_velocity,
+                                     ops.inertia),
+            ring=n_max)
         self._p, self._h, self._u_dev = so.vectors(), so.vectors(), so.vectors()
         view = stepper.vec4_view if so.backend == "warp" else (lambda a: a)
-        self._U_k, self._P_k, self._p_k, self._h_k = view(self._U), view(self._P), view(self._p), view(self._h)
+        self._U_k, self._P_k, self._p_k, self._h_k = (view(self.state.U), view(self.state.P), view(self._p),
+                                                      view(self._h))
         self._p_live = False
         # host staging (page-locked on CUDA, so the per-step copies are direct DMA)
         pinned = device.is_cuda
@@ -282,28 +317,32 @@ class BemBody(Body):
         self._u_in = wp.zeros(so.pitch, dtype=so.dtype, device="cpu", pinned=pinned)
         self._p_in = wp.zeros(so.pitch, dtype=so.dtype, device="cpu", pinned=pinned)
         self._b_in = wp.zeros(6, dtype=so.dtype, device="cpu", pinned=pinned)
-        self._u = np.zeros(so.size)
-        self._frame = RigidFrame.at_rest(self._R0, self._T0, self.initial_velocity, self.initial_angular_velocity,
-                                         ops.inertia)
-        self._step = n_max  # ring index of the next step; offset by n_max so (step - k) >= 0
         if not self.frame_update:
             self._seed_rigid_history()
         self._failure: tuple[str, str, str] | None = None  # quantity, detail, reason
-        self._last_loaded = 0  # last step with a nonzero traction
-        self._window = (max(ops.n_max, 20), 0.0, 0.0, 0)  # (length, this max, previous max, growing windows)
-        self._bound = True
+        self._window_length = max(ops.n_max, 20)  # steps per window of the growth check
+
+    def _state_loaded(self) -> None:
+        # the traction buffer is scratch: cleared, so an unloaded next step needs nothing from it
+        self._p.zero_()
+        self._p_live = False
+        self._failure = None
+
+    def signature(self) -> dict:
+        return {**super().signature(), "nodes": self._surface.n_nodes, "dt": self.dt, "n_max": self._so.n_max,
+                "precision": self.precision, "frame_update": self.frame_update, "material": self.material.as_key()}
 
     def _seed_rigid_history(self) -> None:
         """Without the frame, an initial velocity lives in u: u_{-k} = -k dt (v + omega x x), p = 0 (a
         rigid motion at constant velocity is traction-free)."""
-        f = self._frame
+        f = self.state.frame
         v_b, w_b = f.R.T @ f.velocity, f.R.T @ f.omega
         x = self._so.operators.surface.nodes - self._so.operators.com
         rigid = (v_b + np.cross(w_b, x)).reshape(-1)
         U = np.zeros((self._so.n_max, self._so.pitch))
         for k in range(1, self._so.n_max + 1):
-            U[(self._step - k) % self._so.n_max, : self._so.size] = -k * self.dt * rigid
-        self._U.assign(U.astype(PRECISIONS[self.precision]))
+            U[(self.state.ring - k) % self._so.n_max, : self._so.size] = -k * self.dt * rigid
+        self.state.U.assign(U.astype(PRECISIONS[self.precision]))
         f.velocity = np.zeros(3)
         f.omega = np.zeros(3)
         f.L = np.zeros(3)
@@ -321,7 +360,7 @@ class BemBody(Body):
         if self._failure is not None:
             return
         target = int(math.floor(t1 / self.dt + 0.5))
-        while self.steps < target:
+        while self.state.steps < target:
             self.step()
             if self._failure is not None:
                 return
@@ -347,7 +386,7 @@ class BemBody(Body):
         t0 = time.perf_counter()
         # the history needs only past steps: launch it first, so the host evaluates the loads
         # while the device streams the matrices
-        stepper.history(so, self._U_k, self._P_k, self._B, self._step, self._h)
+        stepper.history(so, self._U_k, self._P_k, self.state.B, self.state.ring, self._h)
         t0 = self._tick("history", t0)
         p = self._tractions(t) if self._loads else None
         has_p = p is not None and bool(np.any(p))
@@ -371,7 +410,8 @@ class BemBody(Body):
 
     def _finish_step(self, u: np.ndarray, a_ext: np.ndarray, alpha_ext: np.ndarray, t0: float) -> None:
         """Error correction, ring update and frame update of the step (the paper's ERRCR)."""
-        so, f = self._so, self._frame
+        st = self.state
+        so, f = self._so, st.frame
         n3 = so.size
         g_body = f.R.T @ self._gravity  # g' (Eq. 11a)
         if self.frame_update:
@@ -384,19 +424,19 @@ class BemBody(Body):
             b = np.concatenate([-g_body, np.zeros(3)])
             u = u + so.E @ np.concatenate([-(a_ext + g_body), -alpha_ext])
         t0 = self._tick("correction", t0)
-        slot = self._step % so.n_max
+        slot = st.ring % so.n_max
         self._u_in.numpy()[:n3] = u
         self._b_in.numpy()[:] = b
-        wp.copy(self._U, self._u_in, dest_offset=slot * so.pitch, count=n3)
-        wp.copy(self._P, self._p, dest_offset=slot * so.pitch, count=n3)
-        wp.copy(self._B, self._b_in, dest_offset=slot * 6, count=6)
+        wp.copy(st.U, self._u_in, dest_offset=slot * so.pitch, count=n3)
+        wp.copy(st.P, self._p, dest_offset=slot * so.pitch, count=n3)
+        wp.copy(st.B, self._b_in, dest_offset=slot * 6, count=6)
         if self.frame_update:
             f.update(self.dt, self._gravity, b[:3], b[3:], self._inertia, self._inertia_inv, self.gyroscopic)
-            if self.steps % 100 == 99:
+            if st.steps % 100 == 99:
                 f.reorthonormalize()
-        self._u = u
-        self._step += 1
-        self.steps += 1
+        st.u = u
+        st.ring += 1
+        st.steps += 1
         self._tick("frame", t0)
         self._check_state()
 
@@ -404,10 +444,11 @@ class BemBody(Body):
         """Windows of n_max steps: five in a row, all unloaded, each with a peak |u| 20 % above the
         last and above round-off (1e-9 of the body size), mean a growing mode of the discrete
         system - the physical body, passive and unloaded, can only ring down (BDF1 damps it)."""
-        length, current, previous, growing = self._window
+        st = self.state
+        length, current, previous, growing = self._window_length, st.window_peak, st.window_previous, st.window_growing
         current = max(current, peak)
         if self.steps % length == 0:
-            unloaded = self.steps - self._last_loaded >= 2 * length  # this window and the one before
+            unloaded = self.steps - st.last_loaded >= 2 * length  # this window and the one before
             if unloaded and previous > 1e-9 * self._so.operators.r_max and current > 1.2 * previous:
                 growing += 1
             else:
@@ -418,18 +459,19 @@ class BemBody(Body):
                                  f"(t = {self.time:.6g} s): the discretization is unstable at this dt and mesh "
                                  "(try a larger dt or a finer mesh)", "growing")
             previous, current = current, 0.0
-        self._window = (length, current, previous, growing)
+        st.window_peak, st.window_previous, st.window_growing = current, previous, growing
 
     def _check_state(self) -> None:
-        f = self._frame
-        for quantity, value in (("displacement", self._u), ("frame position", f.T), ("frame velocity", f.velocity),
+        f = self.state.frame
+        for quantity, value in (("displacement", self.state.u), ("frame position", f.T), ("frame velocity", f.velocity),
                                 ("angular velocity", f.omega)):
             if not np.all(np.isfinite(value)):
                 self._failure = (quantity, f"step {self.steps} (t = {self.time:.6g} s)", "non-finite")
                 return
-        peak = float(np.max(np.abs(self._u))) if self._u.size else 0.0
+        u = self.state.u
+        peak = float(np.max(np.abs(u))) if u.size else 0.0
         if self._loaded_now:
-            self._last_loaded = self.steps
+            self.state.last_loaded = self.steps
         if self.growth_check:
             self._check_growth(peak)
         if peak > self.divergence_limit:

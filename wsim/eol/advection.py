@@ -8,6 +8,7 @@ import warp as wp
 from wsim.eol.grid import EolGrid
 from wsim.errors import InvalidParameter
 from wsim.kernels import eol_advect as ka
+from wsim.kernels.eol_grid import Grid, grid_struct
 
 SCHEMES = ("semi-lagrangian", "bfecc")
 
@@ -18,9 +19,10 @@ def check_scheme(scheme: str, what: str = "advection") -> str:
     return scheme
 
 
-def advect_arrays(q: wp.array, v: wp.array, out: wp.array, origin: wp.vec3d, h: wp.float64, dt: float, scheme: str,
+def advect_arrays(q: wp.array, v: wp.array, out: wp.array, grid: Grid, dt: float, scheme: str,
                   scratch: tuple[wp.array, wp.array] | None, device, limit: bool = True) -> None:
-    """out = q advected by v over dt [s]; 3-D vec3d node arrays (``out`` must not alias ``q``).
+    """out = q advected by v over dt [s]; 3-D vec3d node arrays on ``grid`` (a ``Grid`` struct;
+    ``out`` must not alias ``q``).
 
     ``semi-lagrangian`` is first order and diffusive (the paper's scheme, which its time-step rule
     Eq. 30 assumes); ``bfecc`` costs three semi-Lagrangian passes, is second order on smooth
@@ -31,16 +33,16 @@ def advect_arrays(q: wp.array, v: wp.array, out: wp.array, origin: wp.vec3d, h: 
     shape = q.shape
     dtw = wp.float64(dt)
     if scheme == "semi-lagrangian":
-        wp.launch(ka.semi_lagrangian, dim=shape, device=device, inputs=[q, v, origin, h, dtw, out])
+        wp.launch(ka.semi_lagrangian, dim=shape, device=device, inputs=[q, v, grid, dtw, out])
         return
     fwd, back = scratch  # type: ignore[misc]
-    wp.launch(ka.semi_lagrangian, dim=shape, device=device, inputs=[q, v, origin, h, dtw, fwd])
-    wp.launch(ka.semi_lagrangian, dim=shape, device=device, inputs=[fwd, v, origin, h, wp.float64(-dt), back])
+    wp.launch(ka.semi_lagrangian, dim=shape, device=device, inputs=[q, v, grid, dtw, fwd])
+    wp.launch(ka.semi_lagrangian, dim=shape, device=device, inputs=[fwd, v, grid, wp.float64(-dt), back])
     wp.launch(ka.bfecc_combine, dim=shape, device=device, inputs=[q, back, fwd])
     if limit:
-        wp.launch(ka.semi_lagrangian_limited, dim=shape, device=device, inputs=[fwd, q, v, origin, h, dtw, out])
+        wp.launch(ka.semi_lagrangian_limited, dim=shape, device=device, inputs=[fwd, q, v, grid, dtw, out])
     else:
-        wp.launch(ka.semi_lagrangian, dim=shape, device=device, inputs=[fwd, v, origin, h, dtw, out])
+        wp.launch(ka.semi_lagrangian, dim=shape, device=device, inputs=[fwd, v, grid, dtw, out])
 
 
 def advect(grid: EolGrid, q: np.ndarray, v: np.ndarray, dt: float, scheme: str = "semi-lagrangian",
@@ -53,5 +55,5 @@ def advect(grid: EolGrid, q: np.ndarray, v: np.ndarray, dt: float, scheme: str =
     va = wp.array(np.asarray(v, dtype=np.float64).reshape(*shape, 3), dtype=wp.vec3d, device=device)
     out = wp.empty_like(qa)
     scratch = (wp.empty_like(qa), wp.empty_like(qa)) if scheme == "bfecc" else None
-    advect_arrays(qa, va, out, wp.vec3d(*grid.origin), wp.float64(grid.h), dt, scheme, scratch, device, limit)
+    advect_arrays(qa, va, out, grid_struct(grid), dt, scheme, scratch, device, limit)
     return out.numpy().reshape(-1, 3)

@@ -1,7 +1,8 @@
 """``EolBody``: an Eulerian-on-Lagrangian solid in a World (Fan, Litven, Levin, Pai; Algorithm 1).
 
-State. An Eulerian grid in the intermediate domain y stores the reference map z(y) (material
-coordinates, advected) and the Eulerian velocity v at its nodes; Lagrangian coordinates carry the
+State (``EolState``, ``self.state``; see ``wsim.eol.state``). An Eulerian grid in the
+intermediate domain y stores the reference map z(y) (material coordinates, advected) and the
+Eulerian velocity v at its nodes; Lagrangian coordinates carry the
 grid through space: ``rigid`` x = R y + T (6 DOF, Eq. 1), ``affine`` x = A y + b (12 DOF, the
 linear-modal case of Eq. 7 with the affine modes), or ``eulerian`` (frame fixed: the purely
 Eulerian baseline of Fig. 7). The surface mesh and the material quadrature points live in the
@@ -37,22 +38,24 @@ import numpy as np
 import warp as wp
 
 from wsim import mesh as wmesh
-from wsim.rigid import rodrigues
-from wsim.rigid import cross_matrix
 from wsim.body import Body
 from wsim.colliders import Surfaces
 from wsim.eol.advection import advect_arrays, check_scheme
 from wsim.eol.contact import ContactRows, ContactSystem, block_nodes, rows_from_blocks, solve_contact, surface_samples
+from wsim.eol.elastic import sample_forces
 from wsim.eol.grid import make_grid, material_samples
+from wsim.eol.split import lagrangian_fields, velocity_moments
+from wsim.eol.state import EolState
 from wsim.eol.timestep import adaptive_dt, elastic_dt_limit
+from wsim.eol.tracking import track_points
 from wsim.errors import InvalidParameter, SimulationDiverged
 from wsim.kernels import eol_contact as kc
-from wsim.kernels import eol_elastic as ke
 from wsim.kernels import eol_plastic as kp
 from wsim.kernels import eol_step as ks
-from wsim.kernels import eol_track as kt
+from wsim.kernels.eol_grid import grid_struct
 from wsim.materials import ElasticMaterial
-from wsim.validate import as_rotation, finite_number
+from wsim.rigid import advance_pose, cross_matrix
+from wsim.validate import as_rotation, finite_number, positive_int
 
 if TYPE_CHECKING:
     from wsim.colliders import Collider
@@ -184,10 +187,9 @@ class EolBody(Body):
         self.split = split
         if plasticity is not None and not isinstance(plasticity, Plasticity):
             raise InvalidParameter(f"{p}: plasticity must be a wsim.eol.Plasticity or None")
-        for value, what, lo in ((padding, "padding", 1), (quadrature, "quadrature", 1),
-                                (collision_block, "collision_block", 1)):
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lo:
-                raise InvalidParameter(f"{p}: {what} = {value!r} must be an integer >= {lo}")
+        padding = positive_int(padding, f"{p}: padding")
+        quadrature = positive_int(quadrature, f"{p}: quadrature")
+        collision_block = positive_int(collision_block, f"{p}: collision_block")
         if dt_max is not None:
             dt_max = finite_number(dt_max, f"{p}: dt_max [s]")
             if dt_max <= 0.0:
@@ -205,7 +207,10 @@ class EolBody(Body):
             raise InvalidParameter(f"{p}: damping must be >= 0 and mass_floor in [0, 1]")
         vertices, faces = wmesh.surface_arrays(mesh, p)
         wmesh.check_surface(vertices, faces, name=p, closed=True)
-        self.grid = make_grid(vertices, resolution, int(padding))  # validates the resolution
+        self.grid = make_grid(vertices, resolution, padding)  # validates the resolution
+        self.resolution = int(resolution)
+        self.padding = padding
+        self.quadrature = quadrature
         self.material = material
         self.lagrangian = lagrangian
         self.advection = advection
@@ -217,7 +222,7 @@ class EolBody(Body):
         self.collision_block = int(collision_block)
         self._R0 = as_rotation(rotation, f"{p}: rotation")
         self._faces = faces.astype(np.int32)
-        samples = material_samples(self.grid, vertices, faces, per_axis=int(quadrature))
+        samples = material_samples(self.grid, vertices, faces, per_axis=quadrature)
         if len(samples.weights) == 0:
             raise InvalidParameter(f"{p}: no material point inside the mesh at resolution {resolution}")
         # the intermediate domain is centred on the centre of mass: rigid rotations turn about it
@@ -232,13 +237,8 @@ class EolBody(Body):
             self.dt_elastic = min(self.dt_elastic, material.rho * self.grid.h**2 / (12.0 * self.damping))
         self._mass_floor = floor * material.rho * self.grid.h**3
         self.timings = {k: 0.0 for k in STAGES}
-        self.history: list[StepRecord] = []
-        self.contact_impulse = np.zeros(3)
-        self.gravity_impulse = np.zeros(3)
-        self.steps = 0
-        self.time = 0.0
-        self._bound = False
-        self._failure: tuple[str, str, str] | None = None
+        self.history: list[StepRecord] = []  # diagnostics of every step (not state)
+        self.state: EolState | None = None
 
     # -- read-outs -------------------------------------------------------------------------
     @property
@@ -253,11 +253,77 @@ class EolBody(Body):
     @property
     def frame(self) -> tuple[np.ndarray, np.ndarray]:
         """(F_L, T): the Lagrangian map x = F_L y + T (F_L = R rigid, A affine, I Eulerian)."""
-        return self._F.copy(), self._T.copy()
+        self._require_bound()
+        return self.state.F.copy(), self.state.T.copy()
 
-    def _require_bound(self) -> None:
-        if not self._bound:
-            raise InvalidParameter(f"body '{self.name}': add it to a World (or call bind) first")
+    @property
+    def time(self) -> float:
+        """The body's time [s] (0 before ``bind``)."""
+        return 0.0 if self.state is None else self.state.time
+
+    @property
+    def steps(self) -> int:
+        """Steps taken so far."""
+        return 0 if self.state is None else self.state.steps
+
+    @property
+    def contact_impulse(self) -> np.ndarray:
+        """Momentum delivered by the colliders so far [kg m/s] (world)."""
+        return np.zeros(3) if self.state is None else self.state.contact_impulse
+
+    @property
+    def gravity_impulse(self) -> np.ndarray:
+        """Momentum delivered by gravity so far [kg m/s] (world)."""
+        return np.zeros(3) if self.state is None else self.state.gravity_impulse
+
+    # the state's device arrays under the names the step (and tests) use; setting one writes in place
+    @property
+    def _z(self) -> wp.array:
+        return self.state.z
+
+    @_z.setter
+    def _z(self, value: Any) -> None:
+        self.state.z.assign(value)
+
+    @property
+    def _v(self) -> wp.array:
+        return self.state.v
+
+    @_v.setter
+    def _v(self, value: Any) -> None:
+        self.state.v.assign(value)
+
+    @property
+    def _y_pts(self) -> wp.array:
+        return self.state.y_points
+
+    @property
+    def _y_vertices(self) -> wp.array:
+        return self.state.y_vertices
+
+    @property
+    def _Fp_inv(self) -> wp.array:
+        return self.state.Fp_inv
+
+    @property
+    def _failure(self) -> tuple[str, str, str] | None:
+        return None if self.state is None else self.state.get_failure()
+
+    @_failure.setter
+    def _failure(self, value: tuple[str, str, str] | None) -> None:
+        self.state.set_failure(value)
+
+    def signature(self) -> dict[str, Any]:
+        """The base signature plus the settings that change the meaning of the state."""
+        sig = super().signature()
+        sig.update(resolution=self.resolution, padding=self.padding, quadrature=self.quadrature,
+                   grid_cells=[int(c) for c in self.grid.cells], lagrangian=self.lagrangian, advection=self.advection,
+                   plastic=self.plasticity is not None, split=self.split, collision_block=self.collision_block)
+        return sig
+
+    def _state_loaded(self) -> None:
+        """Forces, lumped masses and elastic energy of the loaded state (what the last step's force pass left)."""
+        self._force_pass()
 
     def intermediate_vertices(self) -> np.ndarray:
         """(V, 3) surface vertices in the intermediate domain y (Algorithm 2) [m]."""
@@ -265,7 +331,7 @@ class EolBody(Body):
         return self._y_vertices.numpy()
 
     def points(self) -> np.ndarray:
-        return self.intermediate_vertices() @ self._F.T + self._T
+        return self.intermediate_vertices() @ self.state.F.T + self.state.T
 
     def eulerian_velocity(self) -> np.ndarray:
         """(n_nodes, 3) Eulerian velocities v [m/s] (zero on nodes without mass)."""
@@ -286,9 +352,9 @@ class EolBody(Body):
     def angular_velocity(self) -> np.ndarray:
         """World angular velocity of the Lagrangian frame [rad/s] (rigid: R omega; affine: of A's rotation)."""
         if self.lagrangian == "rigid":
-            return self._F @ self._omega
+            return self.state.F @ self.state.omega
         if self.lagrangian == "affine":
-            W = self._Adot @ np.linalg.inv(self._F)
+            W = self.state.Adot @ np.linalg.inv(self.state.F)
             return 0.5 * np.array([W[2, 1] - W[1, 2], W[0, 2] - W[2, 0], W[1, 0] - W[0, 1]])
         return np.zeros(3)
 
@@ -315,7 +381,7 @@ class EolBody(Body):
     @property
     def elastic_energy(self) -> float:
         """Elastic energy [J] of the last force pass."""
-        return float(self._energy.numpy()[0]) if self._bound else 0.0
+        return float(self._energy.numpy()[0]) if self.bound else 0.0
 
     def plastic_strain(self) -> np.ndarray:
         """(P, 3, 3) F_p^-1 at the material points (identity without plasticity)."""
@@ -324,7 +390,6 @@ class EolBody(Body):
 
     # -- Body interface --------------------------------------------------------------------------
     def bind(self, device: wp.Device, gravity: np.ndarray, up: np.ndarray) -> None:
-        self._device = device
         self._gravity = np.asarray(gravity, dtype=np.float64)
         self._up = np.asarray(up, dtype=np.float64)
         grid = self.grid
@@ -332,14 +397,38 @@ class EolBody(Body):
         n = grid.n_nodes
         d = device
         y_nodes = grid.node_positions()
-        self._shape = wp.vec3i(*shape)
-        self._origin = wp.vec3d(*grid.origin)
-        self._h = wp.float64(grid.h)
+        self._grid = grid_struct(grid)
         vec = dict(dtype=wp.vec3d, device=d)
-        self._z = wp.array(y_nodes, **vec)  # at rest y = z
-        self._v = wp.zeros(n, **vec)
+        # immutable on the device: material points and surface in z, their volumes, the faces
+        self._z_pts = wp.array(self._z_points, **vec)
+        self._vol = wp.array(self._volumes, dtype=wp.float64, device=d)
+        self._z_vert = wp.array(self._z_vertices, **vec)
+        self._faces_dev = wp.array(self._faces, dtype=wp.vec3i, device=d)
+        # the state; the initial velocity is a rigid motion about the centre of mass
+        v0, w0 = self.initial_velocity, self.initial_angular_velocity
+        F = self._R0.copy() if self.lagrangian != "eulerian" else np.eye(3)
+        plastic = self.plasticity is not None
+        self.state = EolState(
+            z=wp.array(y_nodes, **vec),  # at rest y = z
+            # purely Eulerian: all motion is on the grid, v = w0 x y + v0
+            v=wp.array(np.cross(w0, y_nodes) + v0, **vec) if self.lagrangian == "eulerian" else wp.zeros(n, **vec),
+            y_points=wp.array(self._z_points, **vec),
+            y_vertices=wp.array(self._z_vertices, **vec),
+            # F_p^-1 only for plastic bodies (a 1-element placeholder keeps the kernel signature)
+            Fp_inv=wp.array(np.broadcast_to(np.eye(3), (len(self._volumes) if plastic else 1, 3, 3)).copy(),
+                            dtype=wp.mat33d, device=d),
+            F=F,
+            T=self.com.copy(),
+            Tdot=v0.copy(),  # world velocity of the frame origin
+            omega=F.T @ w0,  # rigid: body axes
+            Adot=cross_matrix(w0) @ F,  # affine
+            dt_prev=self.dt_elastic,
+        )
+        # derived from the state by the force pass
         self._forces = wp.zeros(n, **vec)
         self._mass = wp.zeros(n, dtype=wp.float64, device=d)
+        self._energy = wp.zeros(1, dtype=wp.float64, device=d)
+        # scratch
         self._w = wp.zeros(n, **vec)
         self._a = wp.zeros(n, **vec)
         self._v0 = wp.zeros(n, **vec)
@@ -351,32 +440,11 @@ class EolBody(Body):
         self._chunks = ks.CHUNKS_CUDA if d.is_cuda else ks.CHUNKS_CPU
         self._moments = wp.zeros(40, dtype=wp.float64, device=d)
         self._vmax = wp.zeros(6, dtype=wp.float64, device=d)
-        self._energy = wp.zeros(1, dtype=wp.float64, device=d)
-        self._z_pts = wp.array(self._z_points, **vec)
-        self._y_pts = wp.array(self._z_points, **vec)
-        self._vol = wp.array(self._volumes, dtype=wp.float64, device=d)
-        self._z_vert = wp.array(self._z_vertices, **vec)
-        self._y_vertices = wp.array(self._z_vertices, **vec)
-        self._faces_dev = wp.array(self._faces, dtype=wp.vec3i, device=d)
         self._iters = wp.zeros(max(len(self._volumes), len(self._z_vertices)), dtype=wp.int32, device=d)
-        plastic = self.plasticity is not None
-        # F_p^-1 only for plastic bodies (a 1-element placeholder keeps the kernel signature)
-        self._Fp_inv = wp.array(np.broadcast_to(np.eye(3), (len(self._volumes) if plastic else 1, 3, 3)).copy(),
-                                dtype=wp.mat33d, device=d)
         self._flowing = wp.zeros(1, dtype=wp.int32, device=d)
-        # Lagrangian state; the initial velocity is a rigid motion about the centre of mass
-        v0, w0 = self.initial_velocity, self.initial_angular_velocity
-        self._T = self.com.copy()
-        self._F = self._R0.copy() if self.lagrangian != "eulerian" else np.eye(3)
-        self._omega = self._F.T @ w0  # rigid: body axes
-        self._Tdot = v0.copy()  # rigid: world velocity of the frame origin
-        self._Adot = cross_matrix(w0) @ self._F  # affine
-        if self.lagrangian == "eulerian":  # all motion is Eulerian: v = w0 x y + v0 on the grid
-            self._v = wp.array(np.cross(w0, y_nodes) + v0, **vec)
+        self._m_total = 0.0
         self._colliders: list[Collider] = []
-        self._active_rows = np.zeros(0, dtype=np.int64)
-        self._dt_prev = self.dt_elastic
-        self._bound = True
+        self._device = device
         self._force_pass()
 
     def attach_colliders(self, surfaces: Surfaces | Sequence[Collider]) -> None:
@@ -396,7 +464,7 @@ class EolBody(Body):
             surf.sample_bary = wp.array(bary, dtype=wp.vec3d, device=d)
             surf.sample_share = wp.array(share, dtype=wp.float64, device=d)
             surf.inv_tau = wp.float64(1.0 / self._positive["contact_relaxation"])
-            surf.origin, surf.h, surf.cells = self._origin, self._h, wp.vec3i(*self.grid.cells)
+            surf.grid = self._grid
             surf.block, surf.ccells = k, wp.vec3i(*self._ccells)
             self._surface = surf
             n_rows = len(self._colliders) * int(np.prod(self._ccells))
@@ -419,7 +487,7 @@ class EolBody(Body):
             cap = min(t1 - self.time, self.dt_elastic, self.dt_max or math.inf)
             self._step(cap)
         if self._failure is None:
-            self.time = t1
+            self.state.time = t1
 
     def check_finite(self, frame: int, time_: float) -> None:
         if self._failure is None:
@@ -434,56 +502,53 @@ class EolBody(Body):
     # -- the step ------------------------------------------------------------------------------
     def _F_L(self) -> np.ndarray:
         """The Lagrangian deformation gradient in the velocity axes: A (affine), I (rigid, Eulerian)."""
-        return self._F if self.lagrangian == "affine" else np.eye(3)
+        return self.state.F if self.lagrangian == "affine" else np.eye(3)
 
     def _axes(self) -> np.ndarray:
         """Velocity axes -> world: R for rigid (body axes), I otherwise."""
-        return self._F if self.lagrangian == "rigid" else np.eye(3)
+        return self.state.F if self.lagrangian == "rigid" else np.eye(3)
 
     def _lagrangian_field(self) -> tuple[np.ndarray, np.ndarray]:
         """(L, c) with J_L(y) q1_dot = L y + c in the velocity axes."""
         if self.lagrangian == "rigid":
-            return cross_matrix(self._omega), self._F.T @ self._Tdot
+            return cross_matrix(self.state.omega), self.state.F.T @ self.state.Tdot
         if self.lagrangian == "affine":
-            return self._Adot.copy(), self._Tdot.copy()
+            return self.state.Adot.copy(), self.state.Tdot.copy()
         return np.zeros((3, 3)), np.zeros(3)
 
     def _force_pass(self) -> None:
-        self._forces.zero_()
-        self._mass.zero_()
-        self._energy.zero_()
-        wp.launch(ke.sample_forces, dim=len(self._volumes), device=self._device,
-                  inputs=[self._z.reshape(self.grid.node_shape), self._origin, self._h, self._y_pts, self._vol,
-                          self._Fp_inv, int(self.plasticity is not None), _mat(self._F_L()),
-                          wp.float64(self.material.mu), wp.float64(self.material.lam), wp.float64(self.material.rho),
-                          self._forces.reshape(self.grid.node_shape), self._mass.reshape(self.grid.node_shape),
-                          self._energy])
+        """Forces, lumped masses (with the floor) and elastic energy of the current state."""
+        shape = self.grid.node_shape
+        sample_forces(self._grid, self.state.z.reshape(shape), self.state.y_points, self._vol, self.state.Fp_inv,
+                      self.plasticity is not None, self._F_L(), self.material, self._forces.reshape(shape),
+                      self._mass.reshape(shape), self._energy, self._device)
         if self._mass_floor > 0.0:
             wp.launch(ks.floor_mass, dim=self.grid.n_nodes, device=self._device,
                       inputs=[self._mass, wp.float64(self._mass_floor)])
 
     def _step(self, cap: float) -> None:
         d = self._device
+        st = self.state
         n = self.grid.n_nodes
         t = time.perf_counter()
         # 1. forces (the force pass of this state was done at the end of the last step)
         L, c = self._lagrangian_field()
         g_axes = self._axes().T @ self._gravity
         wp.launch(ks.node_velocities, dim=n, device=d,
-                  inputs=[self._v, self._mass, self._forces, self._shape, self._origin, self._h, _mat(L), wp.vec3d(*c),
+                  inputs=[self._v, self._mass, self._forces, self._grid, _mat(L), wp.vec3d(*c),
                           _mat(self._F_L()), wp.vec3d(*g_axes), int(self.fictitious and self.lagrangian == "rigid"),
                           self._w, self._a])
         if self.damping > 0.0:
             shape = self.grid.node_shape
             self._tmp.zero_()
             wp.launch(ks.viscous_forces, dim=len(self._volumes), device=d,
-                      inputs=[self._w.reshape(shape), self._origin, self._h, self._y_pts, self._vol,
+                      inputs=[self._w.reshape(shape), self._grid, self._y_pts, self._vol,
                               _mat(np.linalg.inv(self._F_L())), wp.float64(self.damping), self._tmp.reshape(shape)])
             wp.launch(ks.add_acceleration, dim=n, device=d,
                       inputs=[self._tmp, self._mass, self._a])
         t = self._tick("forces", t)
         # 2-3. collision, assembly (S = J M^-1 J^T and the rows' rates on the device), QP
-        dt_guess = min(cap, 2.0 * self._dt_prev)
+        dt_guess = min(cap, 2.0 * st.dt_prev)
         m = n_active = 0
         system = sol = None
         if self._colliders:
@@ -495,9 +560,9 @@ class EolBody(Body):
             t = self._tick("assembly", t)
         if m:
             # warm start from the rows active last step (a resting body: one or two iterations)
-            guess = np.isin(system.ids, self._active_rows)
+            guess = np.isin(system.ids, st.active_rows)
             sol = solve_contact(system, dt_guess, active=guess if guess.any() else None)
-            self._active_rows = system.ids[sol.active]
+            st.active_rows = system.ids[sol.active]
             lam = np.empty((m, 2))
             lam[order] = np.column_stack([sol.lam0, sol.lam1])  # back to the device's row order
             # w, a become w_0, w_1 in place (both are recomputed from the state every step)
@@ -511,21 +576,21 @@ class EolBody(Body):
         (L0, c0), (L1, c1) = self._split(w0, w1)
         self._vmax.zero_()
         wp.launch(ks.eulerian_residual, dim=self._chunks, device=d,
-                  inputs=[w0, w1, self._mass, self._shape, self._origin, self._h, _mat(L0), wp.vec3d(*c0), _mat(L1),
+                  inputs=[w0, w1, self._mass, self._grid, _mat(L0), wp.vec3d(*c0), _mat(L1),
                           wp.vec3d(*c1), _mat(np.linalg.inv(self._F_L())), self._chunks, self._v0, self._v1, self._vmax])
         vmax = self._vmax.numpy()
         if not np.all(np.isfinite(vmax)) or not np.all(np.isfinite(L0 + L1)):
-            self._failure = ("Eulerian velocity", f"non-finite at step {self.steps} (t = {self.time:.6g} s)", "non-finite")
+            self._failure = ("Eulerian velocity", f"non-finite at step {st.steps} (t = {st.time:.6g} s)", "non-finite")
             return
         h = self.grid.h
         dt = adaptive_dt(vmax[:3], vmax[3:], h, self.cfl, cap)
         if dt < 1e-9 * cap and dt < 1e-12:
-            self._failure = ("time step", f"dt = {dt:.3g} s collapsed at step {self.steps}", "diverging")
+            self._failure = ("time step", f"dt = {dt:.3g} s collapsed at step {st.steps}", "diverging")
             return
         wp.launch(ks.combine, dim=n, device=d, inputs=[self._v0, self._v1, wp.float64(dt), self._vstar])
         L_new, c_new = L0 + dt * L1, c0 + dt * c1
         if sol is not None:  # momentum the QP delivered: sum_s m_s (w_s - w_hat_s) = -J^T lambda
-            self.contact_impulse -= self._axes() @ ((sol.lam0 + dt * sol.lam1) @ system.jsum)
+            st.contact_impulse = st.contact_impulse - self._axes() @ ((sol.lam0 + dt * sol.lam1) @ system.jsum)
         t = self._tick("ls", t)
         # 5. advect v* by itself, then z by v^{t+1} (Algorithm 1), and move the frame
         self._advect_fields(dt)
@@ -537,51 +602,33 @@ class EolBody(Body):
         if self.plasticity is not None:
             self._flowing.zero_()
             wp.launch(kp.plastic_flow, dim=len(self._volumes), device=d,
-                      inputs=[self._z.reshape(self.grid.node_shape), self._origin, self._h, self._y_pts,
+                      inputs=[self._z.reshape(self.grid.node_shape), self._grid, self._y_pts,
                               _mat(self._F_L()), wp.float64(self.material.mu), wp.float64(self.material.lam),
                               wp.float64(self.plasticity.yield_stress), wp.float64(self.plasticity.flow_rate * dt),
                               self._Fp_inv, self._flowing])
             t = self._tick("plasticity", t)
         self._force_pass()
         self._tick("forces", t)
-        self.gravity_impulse += dt * self._m_total * self._gravity
-        self.history.append(StepRecord(time=self.time, dt=dt, rows=m, active=n_active,
+        st.gravity_impulse = st.gravity_impulse + dt * self._m_total * self._gravity
+        self.history.append(StepRecord(time=st.time, dt=dt, rows=m, active=n_active,
                                        v_star=float(max(vmax[:3].max(), 0.0) + dt * vmax[3:].max()),
                                        overlap=0.0 if system is None else float(system.overlap.sum()),
                                        qp_iterations=0 if sol is None else sol.iterations))
-        self.time += dt
-        self.steps += 1
-        self._dt_prev = dt
+        st.time += dt
+        st.steps += 1
+        st.dt_prev = dt
 
     def _split(self, w0: wp.array, w1: wp.array) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
-        """Lagrangian fields (L_i, c_i) of the least-squares split of w0 and w1 (Eq. 23)."""
+        """Lagrangian fields (L_i, c_i) of the least-squares split of w0 and w1 (Eq. 23), from their
+        moments (``wsim.eol.split``); also sets the body's mass for the gravity impulse."""
         if self.lagrangian == "eulerian":
             self._m_total = float(np.sum(self._mass.numpy()))
             z = (np.zeros((3, 3)), np.zeros(3))
             return z, z
-        self._moments.zero_()
-        wp.launch(ks.velocity_moments, dim=self._chunks, device=self._device,
-                  inputs=[w0, w1, self._mass, self._shape, self._origin, self._h, int(self.split == "mass"), self._chunks,
-                          self._moments])
-        mom = self._moments.numpy()
-        C = mom[:16].reshape(4, 4)
-        self._m_total = C[3, 3] if self.split == "mass" else float(np.sum(self._mass.numpy()))
-        out = []
-        for B in (mom[16:28].reshape(3, 4), mom[28:40].reshape(3, 4)):
-            if self.lagrangian == "affine":  # x_dot = Q (y, 1): Q = B C^-1 whatever the metric A^-T A^-1
-                Q = np.linalg.solve(C.T, B.T).T
-                out.append((Q[:, :3], Q[:, 3]))
-            else:  # rigid: normal equations of J_L = [-[y], I] from the same moments
-                Syy, sy, cnt = C[:3, :3], C[:3, 3], C[3, 3]
-                N = np.zeros((6, 6))
-                N[:3, :3] = np.trace(Syy) * np.eye(3) - Syy
-                N[:3, 3:] = cross_matrix(sy)
-                N[3:, :3] = -cross_matrix(sy)
-                N[3:, 3:] = cnt * np.eye(3)
-                rhs = np.concatenate([[B[2, 1] - B[1, 2], B[0, 2] - B[2, 0], B[1, 0] - B[0, 1]], B[:, 3]])
-                q = np.linalg.solve(N, rhs)
-                out.append((cross_matrix(q[:3]), q[3:]))
-        return out[0], out[1]
+        mass_norm = self.split == "mass"
+        C, B0, B1 = velocity_moments(self._grid, w0, w1, self._mass, mass_norm, self._chunks, self._moments, self._device)
+        self._m_total = C[3, 3] if mass_norm else float(np.sum(self._mass.numpy()))
+        return lagrangian_fields(self.lagrangian, C, B0), lagrangian_fields(self.lagrangian, C, B1)
 
     def _advect_fields(self, dt: float) -> None:
         d = self._device
@@ -598,34 +645,33 @@ class EolBody(Body):
 
     def _advect(self, q: wp.array, vel: wp.array, dt: float, out: wp.array) -> None:
         shape = self.grid.node_shape
-        advect_arrays(q.reshape(shape), vel.reshape(shape), out.reshape(shape), self._origin, self._h, dt,
+        advect_arrays(q.reshape(shape), vel.reshape(shape), out.reshape(shape), self._grid, dt,
                       self.advection, self._advect_scratch, self._device)
 
     def _integrate_pose(self, dt: float, L: np.ndarray, c: np.ndarray) -> None:
-        if self.lagrangian == "rigid":
-            self._omega = np.array([L[2, 1], L[0, 2], L[1, 0]])
-            self._Tdot = self._F @ c  # world velocity of the origin: transported exactly between steps
-            self._T = self._T + dt * self._Tdot
-            self._F = self._F @ rodrigues(dt * self._omega)
+        st = self.state
+        if self.lagrangian == "rigid":  # omega in body axes; advance_pose takes the world one, F omega
+            st.omega = np.array([L[2, 1], L[0, 2], L[1, 0]])
+            st.Tdot = st.F @ c  # world velocity of the origin: transported exactly between steps
+            st.F, st.T = advance_pose(st.F, st.T, st.Tdot, st.F @ st.omega, dt)
         elif self.lagrangian == "affine":
-            self._Adot, self._Tdot = L, c
-            self._T = self._T + dt * c
-            self._F = self._F + dt * L
+            st.Adot, st.Tdot = np.array(L), np.array(c)
+            st.T = st.T + dt * c
+            st.F = st.F + dt * L
 
     def _track(self) -> None:
-        d = self._device
+        """Algorithm 2 for the material points and the surface vertices, each from its last position."""
         z3 = self._z.reshape(self.grid.node_shape)
-        tol = wp.float64(self._positive["track_tol"] * self.grid.h)
+        tol = self._positive["track_tol"] * self.grid.h
         for zs, ys in ((self._z_pts, self._y_pts), (self._z_vert, self._y_vertices)):
-            wp.launch(kt.track_surface, dim=zs.shape[0], device=d,
-                      inputs=[z3, self._origin, self._h, zs, ys, tol, 20, ys, self._iters])
+            track_points(self._grid, z3, zs, ys, tol, 20, ys, self._iters, self._device)
 
     # -- contact --------------------------------------------------------------------------------
     def _collide(self) -> None:
         """Collision: the surface samples inside each collider, binned into rows on the device."""
         d = self._device
         surf = self._surface
-        surf.F, surf.T, surf.to_axes = _mat(self._F), wp.vec3d(*self._T), _mat(self._axes().T)
+        surf.F, surf.T, surf.to_axes = _mat(self.state.F), wp.vec3d(*self.state.T), _mat(self._axes().T)
         for ci, col in enumerate(self._colliders):
             plane = self._surfaces.plane(ci)
             if plane is not None:
@@ -633,9 +679,9 @@ class EolBody(Body):
                 wp.launch(kc.plane_rows, dim=surf.sample_face.shape[0], device=d,
                           inputs=[surf, wp.vec3d(*nrm), wp.float64(height), ci, self._row_acc, self._row_flag])
             else:
-                M = self._surfaces.matrix(ci, self.time)
+                M = self._surfaces.matrix(ci, self.state.time)
                 # world velocity of the collider's material, over a short interval
-                G, g = self._surfaces.velocity(ci, self.time, max(1e-6, 1e-3 * self._dt_prev))
+                G, g = self._surfaces.velocity(ci, self.state.time, max(1e-6, 1e-3 * self.state.dt_prev))
                 wp.launch(kc.mesh_rows, dim=surf.sample_face.shape[0], device=d,
                           inputs=[surf, col.device_mesh(d).id, wp.mat44d(*np.linalg.inv(M).ravel()),
                                   _mat(M[:3, :3]), float(col.extent), _mat(G), wp.vec3d(*g), ci,

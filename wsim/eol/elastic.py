@@ -1,4 +1,8 @@
-"""Elastic forces and lumped masses of an EoL body (the Warp kernel ``sample_forces``; see there)."""
+"""Elastic forces and lumped masses of an EoL body (the Warp kernel ``sample_forces``; see there).
+
+``sample_forces`` launches the kernel on device arrays: ``EolBody``'s force pass calls it every
+step. ``elastic_forces`` is the host convenience (tests, tools) around the same launch.
+"""
 
 from __future__ import annotations
 
@@ -7,7 +11,24 @@ import warp as wp
 
 from wsim.eol.grid import EolGrid
 from wsim.kernels import eol_elastic as ke
+from wsim.kernels.eol_grid import Grid, grid_struct
 from wsim.materials import ElasticMaterial
+
+
+def sample_forces(grid: Grid, z: wp.array, y: wp.array, volumes: wp.array, Fp_inv: wp.array, plastic: bool,
+                  F_L: np.ndarray, material: ElasticMaterial, forces: wp.array, mass: wp.array, energy: wp.array,
+                  device) -> None:
+    """Zero ``forces``, ``mass`` (3-D node arrays of ``grid``) and ``energy`` (1,), then accumulate
+    the nodal forces in F_L's axes [N], the lumped masses [kg] and the elastic energy [J] of the
+    material points at intermediate positions ``y`` with material volumes ``volumes``. ``Fp_inv``
+    (P,) is read only when ``plastic`` (a 1-element placeholder otherwise)."""
+    forces.zero_()
+    mass.zero_()
+    energy.zero_()
+    wp.launch(ke.sample_forces, dim=volumes.shape[0], device=device,
+              inputs=[z, grid, y, volumes, Fp_inv, int(bool(plastic)),
+                      wp.mat33d(*np.asarray(F_L, dtype=np.float64).ravel()),
+                      wp.float64(material.mu), wp.float64(material.lam), wp.float64(material.rho), forces, mass, energy])
 
 
 def elastic_forces(grid: EolGrid, z_nodes: np.ndarray, y: np.ndarray, volumes: np.ndarray, material: ElasticMaterial,
@@ -16,7 +37,8 @@ def elastic_forces(grid: EolGrid, z_nodes: np.ndarray, y: np.ndarray, volumes: n
     """Nodal forces (n_nodes, 3) [N] in F_L's axes, lumped masses (n_nodes,) [kg] and elastic energy [J]
     of material points at intermediate positions y (P, 3) with material volumes (P,) [m^3].
 
-    A host-side convenience (tests, tools); ``EolBody`` launches the kernel on its device arrays.
+    A host-side convenience (tests, tools) around ``sample_forces``, which ``EolBody`` calls on its
+    device arrays.
     """
     shape = grid.node_shape
     z = wp.array(np.asarray(z_nodes, dtype=np.float64).reshape(*shape, 3), dtype=wp.vec3d, device=device)
@@ -24,11 +46,9 @@ def elastic_forces(grid: EolGrid, z_nodes: np.ndarray, y: np.ndarray, volumes: n
     w = wp.array(np.asarray(volumes, dtype=np.float64), dtype=wp.float64, device=device)
     plastic = Fp_inv is not None
     fp = wp.array(np.asarray(Fp_inv, dtype=np.float64) if plastic else np.eye(3)[None], dtype=wp.mat33d, device=device)
-    forces = wp.zeros(shape, dtype=wp.vec3d, device=device)
-    mass = wp.zeros(shape, dtype=wp.float64, device=device)
-    energy = wp.zeros(1, dtype=wp.float64, device=device)
-    FL = wp.mat33d(*np.asarray(np.eye(3) if F_L is None else F_L, dtype=np.float64).ravel())
-    wp.launch(ke.sample_forces, dim=len(w), device=device,
-              inputs=[z, wp.vec3d(*grid.origin), wp.float64(grid.h), ya, w, fp, int(plastic), FL,
-                      wp.float64(material.mu), wp.float64(material.lam), wp.float64(material.rho), forces, mass, energy])
+    forces = wp.empty(shape, dtype=wp.vec3d, device=device)
+    mass = wp.empty(shape, dtype=wp.float64, device=device)
+    energy = wp.empty(1, dtype=wp.float64, device=device)
+    sample_forces(grid_struct(grid), z, ya, w, fp, plastic, np.eye(3) if F_L is None else F_L, material,
+                  forces, mass, energy, device)
     return forces.numpy().reshape(-1, 3), mass.numpy().ravel(), float(energy.numpy()[0])

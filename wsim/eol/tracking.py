@@ -1,4 +1,9 @@
-"""Surface tracking of an EoL body (Algorithm 2; the Warp kernel ``track_surface``)."""
+"""Surface tracking of an EoL body (Algorithm 2; the Warp kernel ``track_surface``).
+
+``track_points`` launches the kernel on device arrays: ``EolBody`` calls it every step for its
+material points and its surface vertices. ``track_surface`` is the host convenience (tests)
+around the same launch.
+"""
 
 from __future__ import annotations
 
@@ -7,6 +12,17 @@ import warp as wp
 
 from wsim.eol.grid import EolGrid
 from wsim.kernels import eol_track as kt
+from wsim.kernels.eol_grid import Grid, grid_struct
+
+
+def track_points(grid: Grid, z_field: wp.array, z_points: wp.array, guess: wp.array, tol: float, max_iter: int,
+                 out: wp.array, iterations: wp.array, device) -> None:
+    """Algorithm 2 on the device: ``out`` (P,) the intermediate positions y with z(y) = z_points to
+    |z(y) - z_p| < ``tol`` [m] (or ``max_iter`` Newton steps) in the nodal field ``z_field`` (3-D, on
+    ``grid``), starting from ``guess`` (may be ``out`` itself: each thread reads its guess first);
+    Newton iterations per point into ``iterations`` (at least P long)."""
+    wp.launch(kt.track_surface, dim=z_points.shape[0], device=device,
+              inputs=[z_field, grid, z_points, guess, wp.float64(tol), int(max_iter), out, iterations])
 
 
 def track_surface(grid: EolGrid, z_nodes: np.ndarray, z_vertices: np.ndarray, guess: np.ndarray,
@@ -20,6 +36,5 @@ def track_surface(grid: EolGrid, z_nodes: np.ndarray, z_vertices: np.ndarray, gu
     g = wp.array(np.asarray(guess, dtype=np.float64), dtype=wp.vec3d, device=device)
     out = wp.empty_like(zv)
     iters = wp.zeros(len(z_vertices), dtype=wp.int32, device=device)
-    wp.launch(kt.track_surface, dim=len(z_vertices), device=device,
-              inputs=[field, wp.vec3d(*grid.origin), wp.float64(grid.h), zv, g, wp.float64(tol), int(max_iter), out, iters])
+    track_points(grid_struct(grid), field, zv, g, tol, max_iter, out, iters, device)
     return out.numpy(), iters.numpy()

@@ -41,6 +41,16 @@ _VEC = {2: wp.vec2i, 4: wp.vec4i}
 
 
 @dataclass
+class PbdState:
+    """What changes when a PBD body steps: particle positions x [m] and velocities v [m/s]
+    (float32, on the body's device). Everything else a substep touches (x_prev, x_pred, the
+    multipliers) is rebuilt from these at its start."""
+
+    x: wp.array
+    v: wp.array
+
+
+@dataclass
 class _DeviceFamily:
     kind: str
     offsets: np.ndarray
@@ -286,6 +296,16 @@ class PbdBody(Body):
         """(P, 3) rest positions in world space (mesh plus ``position``) [m]."""
         return self._rest
 
+    @property
+    def x(self) -> wp.array:
+        """(P,) device positions (``state.x``)."""
+        return self.state.x
+
+    @property
+    def v(self) -> wp.array:
+        """(P,) device velocities (``state.v``)."""
+        return self.state.v
+
     def points(self) -> np.ndarray:
         self._require_bound()
         return self.x.numpy()[: self.model.n_surface].astype(np.float64)
@@ -300,11 +320,11 @@ class PbdBody(Body):
         self._require_bound()
         return self.v.numpy().astype(np.float64)
 
-    def _require_bound(self) -> None:
-        if self._device is None:
-            raise InvalidParameter(f"body '{self.name}': add it to a World (world.add) before reading its state")
-
     # ---------------------------------------------------------------- set-up
+    def signature(self) -> dict:
+        return {**super().signature(), "particles": self.model.n_particles, "substeps": self.substeps, "dt": self.dt,
+                "iterations": self.iterations, "material": self.material.as_key()}
+
     def substeps_for(self, frame_dt: float) -> int:
         """Substeps this body takes to cover one frame of ``frame_dt`` seconds."""
         if self.dt is not None:
@@ -329,8 +349,9 @@ class PbdBody(Body):
         v0[self._kinematic_mask] = 0.0
 
         with wp.ScopedDevice(device):
-            self.x = wp.array(self._rest.astype(np.float32), dtype=wp.vec3)
-            self.v = wp.array(v0.astype(np.float32), dtype=wp.vec3)
+            # in place on restore (set_state), so a recorded CUDA graph keeps pointing at them
+            self.state = PbdState(x=wp.array(self._rest.astype(np.float32), dtype=wp.vec3),
+                                  v=wp.array(v0.astype(np.float32), dtype=wp.vec3))
             self.x_prev = wp.zeros(n, dtype=wp.vec3)
             self.x_pred = wp.zeros(n, dtype=wp.vec3)
             self.inv_mass = wp.array(inv_mass.astype(np.float32), dtype=float)

@@ -71,6 +71,13 @@ def relative_error(rec: np.ndarray, truth: np.ndarray) -> float:
     return float(np.linalg.norm(rec - truth, axis=1).max() / diag)
 
 
+
+@dataclass
+class ReconstructionState:
+    """A reconstruction's only state: the frame it last evaluated (the curves are fixed once fitted)."""
+
+    frame: int = 0
+
 class PbdReconstruction(Body):
     """Keyframe-curve reconstruction of a PBD animation, usable as a World body.
 
@@ -149,7 +156,6 @@ class PbdReconstruction(Body):
             self._fit()
         self._device: wp.Device | None = None
         self._out: wp.array | None = None
-        self._frame = 0
 
     # ---------------------------------------------------------------- fitting
     def _fit(self) -> None:
@@ -172,14 +178,23 @@ class PbdReconstruction(Body):
         if self._device is not None:
             raise InvalidParameter(f"reconstruction '{self.name}' already belongs to a World")
         self._device = device
+        self.state = ReconstructionState()
         if self._body is not None:
             self._body.bind(device, gravity, up)
         else:
             self._upload()
 
-    def attach_colliders(self, colliders) -> None:
+    def attach_colliders(self, surfaces) -> None:
         if self._body is not None:
-            self._body.attach_colliders(colliders)
+            self._body.attach_colliders(surfaces)
+
+    def _state_loaded(self) -> None:
+        if self.state.frame > 0:
+            self.evaluate(self.state.frame)  # fits first if the source body has not been simulated yet
+
+    def signature(self) -> dict:
+        return {**super().signature(), "stride": self.stride, "basis": self.basis, "fps": self.fps,
+                "frames": self.n_frames}
 
     def _ensure_fitted(self) -> None:
         if self.recording is not None:
@@ -243,13 +258,13 @@ class PbdReconstruction(Body):
             raise InvalidParameter(
                 f"reconstruction '{self.name}' covers frames 0..{self.n_frames - 1}; frame {frame} was asked for"
             )
-        self._frame = frame
+        self.state.frame = frame
         self.evaluate(frame)
 
     def points(self) -> np.ndarray:
         if self._device is None:
             raise InvalidParameter(f"reconstruction '{self.name}': add it to a World before reading its state")
-        if self._frame == 0:
+        if self.state.frame == 0:
             self.evaluate(0)
         return self._out.numpy().astype(np.float64) + self.offset
 

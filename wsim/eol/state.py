@@ -1,0 +1,69 @@
+"""``EolState``: everything of an ``EolBody`` that changes when it steps (see ``wsim.state``).
+
+Beside it the body keeps what never changes after ``bind`` (the grid, the material points and
+surface in the material domain, contact samples) and what each step recomputes (forces, lumped
+masses and elastic energy: derived from the state by the force pass; scratch buffers).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import numpy as np
+import warp as wp
+
+
+@dataclass
+class EolState:
+    """The state of one EoL body. Device arrays (``wp.array``) on the body's device; the rest on the host.
+
+    Attributes:
+        z: (n_nodes,) vec3d reference map z(y) at the grid nodes [m] (advected).
+        v: (n_nodes,) vec3d Eulerian velocity v at the nodes [m/s] (velocity axes, see ``eol_step``).
+        y_points: (P,) vec3d material points found in the intermediate domain (Algorithm 2; the
+            next step's Newton guesses) [m].
+        y_vertices: (V,) vec3d surface vertices in the intermediate domain (likewise) [m].
+        Fp_inv: (P,) mat33d plastic F_p^-1 per material point ((1,) identity placeholder without plasticity).
+        F: (3, 3) Lagrangian deformation gradient F_L (R rigid, A affine, I Eulerian).
+        T: (3,) Lagrangian translation [m] (x = F y + T).
+        Tdot: (3,) world velocity of the frame origin [m/s].
+        omega: (3,) rigid angular velocity in body axes [rad/s].
+        Adot: (3, 3) affine dA/dt [1/s].
+        dt_prev: the last step's dt [s] (the next dt guess of the contact QP).
+        time: the body's time [s].  steps: steps taken.
+        active_rows: ids of the contact rows active in the last QP (its warm start; variable length).
+        contact_impulse, gravity_impulse: (3,) momentum delivered by contact and by gravity so far [kg m/s].
+        failure: utf-8 bytes of "quantity\\x1fdetail\\x1freason" once a step failed (empty: none).
+    """
+
+    _ragged: ClassVar[tuple[str, ...]] = ("active_rows", "failure")
+
+    z: wp.array
+    v: wp.array
+    y_points: wp.array
+    y_vertices: wp.array
+    Fp_inv: wp.array
+    F: np.ndarray
+    T: np.ndarray
+    Tdot: np.ndarray
+    omega: np.ndarray
+    Adot: np.ndarray
+    dt_prev: float
+    time: float = 0.0
+    steps: int = 0
+    active_rows: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    contact_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    gravity_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    failure: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.uint8))
+
+    def get_failure(self) -> tuple[str, str, str] | None:
+        """(quantity, detail, reason) of the failure, or None."""
+        if len(self.failure) == 0:
+            return None
+        q, d, r = bytes(self.failure).decode("utf-8").split("\x1f")
+        return q, d, r
+
+    def set_failure(self, failure: tuple[str, str, str] | None) -> None:
+        self.failure = (np.zeros(0, dtype=np.uint8) if failure is None
+                        else np.frombuffer("\x1f".join(failure).encode("utf-8"), dtype=np.uint8).copy())

@@ -1,0 +1,63 @@
+"""Surface meshes for wsim, one module per job:
+
+* :mod:`~wsim.mesh.surface` -- array input (``surface_arrays``), mesh files (``load``,
+  ``load_fitted``) and measures (``signed_volume``, ``face_areas``, ``vertex_normals``,
+  ``vertex_areas``);
+* :mod:`~wsim.mesh.validate` -- ``check_surface``: every defect raised with an example index;
+* :mod:`~wsim.mesh.topology` -- ``edges``, ``hinges``, ``has_boundary``;
+* :mod:`~wsim.mesh.shapes` -- procedural shapes for scenes, tools and tests;
+* :mod:`~wsim.mesh.inside` -- the one point-in-mesh test (``inside_surface``, ``SurfaceQuery``)
+  and the winding-number field (``winding_number``);
+* :mod:`~wsim.mesh.tets` -- ``tetrahedralize`` for ``PbdBody(tets="auto")`` (not named after the
+  function, which would shadow the module as a package attribute).
+
+Conventions used throughout (and expected by every caller):
+
+* vertices are ``float64`` arrays of shape ``(N, 3)``, in metres;
+* faces are ``int32`` arrays of shape ``(M, 3)``, listed counter-clockwise when seen from outside,
+  so the right-hand-rule normals point outwards and the signed volume is positive;
+* every problem with a mesh raises :class:`wsim.errors.InvalidMesh` whose message starts with
+  the object's name -- ``"mesh '<name>': "`` for a bare name, or the caller's own label verbatim
+  when it is already quoted (``name="body 'horse'"`` gives ``"body 'horse': "``) -- and names the
+  offending quantity together with an example index, so a scene script can be fixed from the
+  message alone.
+"""
+
+from wsim.mesh.inside import SurfaceQuery, inside_surface, winding_number
+from wsim.mesh.shapes import beam, bumpy_cube, bumpy_sphere, fish, neck_body, torus
+from wsim.mesh.surface import (
+    face_areas,
+    load,
+    load_fitted,
+    signed_volume,
+    surface_arrays,
+    vertex_areas,
+    vertex_normals,
+)
+from wsim.mesh.tets import tetrahedralize
+from wsim.mesh.topology import edges, has_boundary, hinges
+from wsim.mesh.validate import check_surface
+
+__all__ = [
+    "surface_arrays",
+    "load",
+    "load_fitted",
+    "signed_volume",
+    "face_areas",
+    "vertex_normals",
+    "vertex_areas",
+    "check_surface",
+    "edges",
+    "hinges",
+    "has_boundary",
+    "bumpy_sphere",
+    "fish",
+    "neck_body",
+    "beam",
+    "torus",
+    "bumpy_cube",
+    "inside_surface",
+    "SurfaceQuery",
+    "winding_number",
+    "tetrahedralize",
+]

@@ -1,0 +1,170 @@
+"""Surface input and measures: wsim's array convention for a triangle surface (``surface_arrays``),
+mesh files (``load``, ``load_fitted``) and per-face / per-vertex quantities (volume, areas, normals).
+
+See :mod:`wsim.mesh` for the conventions (float64 (N, 3) vertices [m], int32 (M, 3) outward faces,
+error messages that start with the object's name).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import trimesh
+
+from wsim.errors import InvalidMesh
+from wsim.mesh._common import _corners, _fmt_vec, _positive, _prefix, _scatter_add_rows
+
+
+def _vertices_array(raw: Any, name: str) -> np.ndarray:
+    """Vertices as a C-contiguous float64 (N, 3) copy [m]: N >= 1, all coordinates finite."""
+    p = _prefix(name)
+    try:
+        v = np.array(raw, dtype=np.float64, order="C", copy=True)
+    except (TypeError, ValueError) as exc:
+        raise InvalidMesh(f"{p}: vertices are not a numeric array ({exc})") from None
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise InvalidMesh(f"{p}: vertices must have shape (N, 3), got {v.shape}")
+    if v.shape[0] == 0:
+        raise InvalidMesh(f"{p}: no vertices (vertices has shape {v.shape})")
+    bad = ~np.isfinite(v).all(axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise InvalidMesh(
+            f"{p}: non-finite vertex coordinates: {int(bad.sum())} vertices "
+            f"(e.g. vertex {i} = {_fmt_vec(v[i])})"
+        )
+    return v
+
+
+def _faces_array(raw: Any, n_vertices: int, name: str) -> np.ndarray:
+    """Faces as int32 (M, 3) indices in [0, n_vertices); (0, 3) for a particle set with no surface."""
+    p = _prefix(name)
+    try:
+        f = np.asarray(raw)
+    except (TypeError, ValueError) as exc:
+        raise InvalidMesh(f"{p}: faces are not an integer array ({exc})") from None
+    if f.size == 0 and (f.ndim == 1 or (f.ndim == 2 and f.shape[1] == 3)):
+        # A particle set with no surface is legal input.
+        return np.zeros((0, 3), dtype=np.int32)
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise InvalidMesh(f"{p}: faces must have shape (M, 3), got {f.shape}")
+    if f.dtype.kind == "f":
+        # Index arrays read from text files often arrive as floats; accept them only if exact.
+        ok = np.isfinite(f) & (f == np.round(f))
+        if not ok.all():
+            bad = int(np.argmax(~ok.all(axis=1)))
+            raise InvalidMesh(f"{p}: face indices must be integers (e.g. face {bad} = {f[bad].tolist()})")
+        f = f.astype(np.int64)
+    elif f.dtype.kind not in "iu":
+        raise InvalidMesh(f"{p}: face indices must be integers, got dtype {f.dtype}")
+    f = f.astype(np.int64, copy=False)
+    neg = (f < 0).any(axis=1)
+    if neg.any():
+        i = int(np.argmax(neg))
+        raise InvalidMesh(
+            f"{p}: negative face index in {int(neg.sum())} faces (e.g. face {i} = {f[i].tolist()})"
+        )
+    oob = (f >= n_vertices).any(axis=1)
+    if oob.any():
+        i = int(np.argmax(oob))
+        raise InvalidMesh(
+            f"{p}: face index out of range: {int(oob.sum())} faces refer to vertices outside "
+            f"[0, {n_vertices - 1}] (e.g. face {i} = {f[i].tolist()})"
+        )
+    return np.ascontiguousarray(f, dtype=np.int32)
+
+
+def surface_arrays(mesh: trimesh.Trimesh | tuple[Any, Any], name: str = "mesh") -> tuple[np.ndarray, np.ndarray]:
+    """Convert a surface to wsim's array convention.
+
+    Args:
+        mesh: a ``trimesh.Trimesh`` or a ``(vertices, faces)`` pair of array-likes; vertex
+            coordinates in metres.
+        name: the object's name, used at the start of error messages (see :mod:`wsim.mesh`).
+
+    Returns:
+        ``(V, F)``: ``V`` a C-contiguous float64 (N, 3) copy of the vertices [m], ``F`` int32
+        (M, 3) faces. ``F`` may be empty, shape (0, 3), for a particle set with no surface.
+
+    Raises:
+        InvalidMesh: wrong shapes, no vertices, non-finite coordinates, non-integer, negative or
+            out-of-range face indices.
+    """
+    if isinstance(mesh, trimesh.Trimesh):
+        raw_v, raw_f = mesh.vertices, mesh.faces
+    elif isinstance(mesh, (tuple, list)) and len(mesh) == 2:
+        raw_v, raw_f = mesh
+    else:
+        raise InvalidMesh(
+            f"{_prefix(name)}: expected a trimesh.Trimesh or a (vertices, faces) pair, "
+            f"got {type(mesh).__name__}"
+        )
+    v = _vertices_array(raw_v, name)
+    f = _faces_array(raw_f, v.shape[0], name)
+    return v, f
+
+
+def signed_volume(vertices: Any, faces: Any) -> float:
+    """Signed volume [m^3] enclosed by a closed surface: (1/6) sum over faces of v0 . (v1 x v2).
+
+    Positive when the faces are oriented outwards. For an open surface the value depends on the
+    origin and is only the signed volume of the cone from the origin over the faces.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces)
+    if f.size == 0:
+        return 0.0
+    a, b, c = _corners(v, f)
+    return float(np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0)
+
+
+def face_areas(vertices: Any, faces: Any) -> np.ndarray:
+    """Area [m^2] of each triangle, shape (M,)."""
+    a, b, c = _corners(np.asarray(vertices, dtype=np.float64), np.asarray(faces))
+    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+
+
+def vertex_normals(vertices: Any, faces: Any) -> np.ndarray:
+    """(V, 3) unit area-weighted vertex normals (the sum of the adjacent faces' area vectors)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces)
+    a, b, c = _corners(v, f)
+    n = _scatter_add_rows(f.reshape(-1), np.repeat(np.cross(b - a, c - a), 3, axis=0), v.shape[0])
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def vertex_areas(vertices: Any, faces: Any) -> np.ndarray:
+    """Lumped area [m^2] of each vertex: one third of the area of every incident face, shape (N,)."""
+    n = np.asarray(vertices).shape[0]
+    f = np.asarray(faces)
+    if f.size == 0:
+        return np.zeros(n, dtype=np.float64)
+    third = face_areas(vertices, f) / 3.0
+    return np.bincount(f.reshape(-1), weights=np.repeat(third, 3), minlength=n)
+
+
+def load(path: str | os.PathLike, name: str | None = None) -> trimesh.Trimesh:
+    """Load a surface mesh file (OBJ, PLY, STL, GLB, ...) as one triangle mesh, or InvalidMesh."""
+    p = Path(path).expanduser()
+    label = name or p.name
+    if not p.is_file():
+        raise InvalidMesh(f"mesh '{label}': file '{p}' not found")
+    try:
+        m = trimesh.load(str(p), force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for unreadable files
+        raise InvalidMesh(f"mesh '{label}': cannot read '{p}': {exc}") from None
+    if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
+        raise InvalidMesh(f"mesh '{label}': '{p}' holds no triangles")
+    return m
+
+
+def load_fitted(path: str | os.PathLike, size: float) -> trimesh.Trimesh:
+    """Load a mesh file, centre its bounding box at the origin and scale its longest side to ``size`` [m]
+    (how scenes place a user's ``--mesh`` model)."""
+    m = load(path)
+    m.apply_translation(-m.bounding_box.centroid)
+    m.apply_scale(_positive(size, "fitted mesh size") / max(m.extents))
+    return m

@@ -1,0 +1,86 @@
+"""Topology of triangle lists: unique edges, bending hinges (pairs of faces sharing an edge) and
+whether a surface has a boundary. Only the face indices are read, never the vertex positions."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from wsim.errors import InvalidMesh
+from wsim.mesh._common import _prefix
+
+
+def _edge_keys(a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:
+    """Undirected edge keys ``min*n + max``; int64 cannot overflow because n < 2**31."""
+    a = a.astype(np.int64)
+    b = b.astype(np.int64)
+    return np.minimum(a, b) * n + np.maximum(a, b)
+
+
+def _faces_only(faces: Any, what: str = "mesh") -> np.ndarray:
+    """Faces array for the topology-only functions (edges, hinges): (M, 3) non-negative ints."""
+    f = np.asarray(faces)
+    if f.size == 0:
+        return np.zeros((0, 3), dtype=np.int64)
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise InvalidMesh(f"{_prefix(what)}: faces must have shape (M, 3), got {f.shape}")
+    if f.dtype.kind not in "iu":
+        raise InvalidMesh(f"{_prefix(what)}: face indices must be integers, got dtype {f.dtype}")
+    if f.min() < 0:
+        bad = int(np.argmax((f < 0).any(axis=1)))
+        raise InvalidMesh(f"{_prefix(what)}: negative face index (e.g. face {bad} = {f[bad].tolist()})")
+    return f.astype(np.int64)
+
+
+def has_boundary(faces: Any) -> bool:
+    """True when some edge is used by only one face (an open surface)."""
+    f = _faces_only(faces)
+    if len(f) == 0:
+        return True
+    n = int(f.max()) + 1
+    keys = _edge_keys(f.reshape(-1), f[:, [1, 2, 0]].reshape(-1), n)
+    _, counts = np.unique(keys, return_counts=True)
+    return bool(np.any(counts == 1))
+
+
+def edges(faces: Any) -> np.ndarray:
+    """Unique undirected edges of a triangle list: (E, 2) int32 with i < j, sorted lexicographically."""
+    f = _faces_only(faces)
+    if f.shape[0] == 0:
+        return np.zeros((0, 2), dtype=np.int32)
+    n = int(f.max()) + 1
+    keys = np.unique(_edge_keys(f.reshape(-1), f[:, [1, 2, 0]].reshape(-1), n))
+    keys = keys[keys // n != keys % n]  # a face with a repeated index has a zero-length "edge"
+    return np.stack([keys // n, keys % n], axis=1).astype(np.int32)
+
+
+def hinges(faces: Any) -> np.ndarray:
+    """Bending hinges: one row per interior edge shared by exactly two faces.
+
+    Returns an (H, 4) int32 array ``[w1, w2, e0, e1]``: ``(e0, e1)`` is the shared edge oriented as
+    in the first face (the one with the lower face index), so that face is ``(e0, e1, w1)`` up to a
+    cyclic rotation; ``w1`` and ``w2`` are the vertices of face 1 and face 2 opposite the edge.
+    Rows are sorted by the undirected edge (min, max) vertex pair. Edges used by one face or by
+    more than two faces get no hinge.
+    """
+    f = _faces_only(faces)
+    if f.shape[0] == 0:
+        return np.zeros((0, 4), dtype=np.int32)
+    n = int(f.max()) + 1
+    # Directed edge k of face i is (f[i,k], f[i,k+1]) with wing f[i,k+2]; flattened face-major so
+    # that a stable sort keeps the lower face index first within each edge.
+    src = f.reshape(-1)
+    dst = f[:, [1, 2, 0]].reshape(-1)
+    wing = f[:, [2, 0, 1]].reshape(-1)
+    keys = _edge_keys(src, dst, n)
+    order = np.argsort(keys, kind="stable")
+    sk = keys[order]
+    starts = np.flatnonzero(np.r_[True, sk[1:] != sk[:-1]])
+    counts = np.diff(np.r_[starts, sk.size])
+    pair = starts[counts == 2]
+    first = order[pair]
+    second = order[pair + 1]
+    ok = (first // 3 != second // 3) & (src[first] != dst[first])
+    first, second = first[ok], second[ok]
+    return np.stack([wing[first], wing[second], src[first], dst[first]], axis=1).astype(np.int32)
