@@ -87,7 +87,7 @@ def breathing_omega(resolution: int, lagrangian: str) -> tuple[float, EolBody]:
     b = w.add(EolBody(trimesh.creation.icosphere(subdivisions=3, radius=0.5), BREATHING, resolution=resolution,
                       lagrangian=lagrangian))
     w.step()
-    b._v = wp.array(0.5 * b.grid.node_positions(), dtype=wp.vec3d, device=b._device)
+    b.state.v.assign(0.5 * b.grid.node_positions())
     t0, r_rest = w.time, np.linalg.norm(b.rest_vertices, axis=1).mean()
     ts, rs = [], []
     while w.time < t0 + 0.2:
@@ -385,7 +385,7 @@ def test_divergence_is_reported_with_the_body_named(monkeypatch):
     w = wsim.World(fps=30, gravity=(0, 0, 0), device="cpu")
     b = w.add(EolBody(sphere(), SOFT, resolution=6, name="ball"))
     w.step()
-    b._v.fill_(wp_nan())
+    b.state.v.fill_(wp_nan())
     with pytest.raises(wsim.SimulationDiverged, match="ball.*Eulerian velocity"):
         w.step()
 

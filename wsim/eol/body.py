@@ -276,35 +276,6 @@ class EolBody(Body):
         """Momentum delivered by gravity so far [kg m/s] (world)."""
         return np.zeros(3) if self.state is None else self.state.gravity_impulse
 
-    # the state's device arrays under the names the step (and tests) use; setting one writes in place
-    @property
-    def _z(self) -> wp.array:
-        return self.state.z
-
-    @_z.setter
-    def _z(self, value: Any) -> None:
-        self.state.z.assign(value)
-
-    @property
-    def _v(self) -> wp.array:
-        return self.state.v
-
-    @_v.setter
-    def _v(self, value: Any) -> None:
-        self.state.v.assign(value)
-
-    @property
-    def _y_pts(self) -> wp.array:
-        return self.state.y_points
-
-    @property
-    def _y_vertices(self) -> wp.array:
-        return self.state.y_vertices
-
-    @property
-    def _Fp_inv(self) -> wp.array:
-        return self.state.Fp_inv
-
     @property
     def _failure(self) -> tuple[str, str, str] | None:
         return None if self.state is None else self.state.get_failure()
@@ -328,7 +299,7 @@ class EolBody(Body):
     def intermediate_vertices(self) -> np.ndarray:
         """(V, 3) surface vertices in the intermediate domain y (Algorithm 2) [m]."""
         self._require_bound()
-        return self._y_vertices.numpy()
+        return self.state.y_vertices.numpy()
 
     def points(self) -> np.ndarray:
         return self.intermediate_vertices() @ self.state.F.T + self.state.T
@@ -336,12 +307,12 @@ class EolBody(Body):
     def eulerian_velocity(self) -> np.ndarray:
         """(n_nodes, 3) Eulerian velocities v [m/s] (zero on nodes without mass)."""
         self._require_bound()
-        return self._v.numpy() * (self._mass.numpy() > 0.0)[:, None]
+        return self.state.v.numpy() * (self._mass.numpy() > 0.0)[:, None]
 
     def reference_map(self) -> np.ndarray:
         """(n_nodes, 3) material coordinates z at the grid nodes [m]."""
         self._require_bound()
-        return self._z.numpy()
+        return self.state.z.numpy()
 
     def node_masses(self) -> np.ndarray:
         """(n_nodes,) lumped masses of the last step's force pass [kg], with the ``mass_floor``."""
@@ -386,7 +357,7 @@ class EolBody(Body):
     def plastic_strain(self) -> np.ndarray:
         """(P, 3, 3) F_p^-1 at the material points (identity without plasticity)."""
         self._require_bound()
-        return self._Fp_inv.numpy() if self.plasticity else np.broadcast_to(np.eye(3), (len(self._volumes), 3, 3))
+        return self.state.Fp_inv.numpy() if self.plasticity else np.broadcast_to(np.eye(3), (len(self._volumes), 3, 3))
 
     # -- Body interface --------------------------------------------------------------------------
     def bind(self, device: wp.Device, gravity: np.ndarray, up: np.ndarray) -> None:
@@ -459,7 +430,7 @@ class EolBody(Body):
             k = self.collision_block
             self._ccells = tuple(-(-c // k) for c in self.grid.cells)
             surf = kc.ContactSurface()  # the constant part; the frame is set each step
-            surf.y, surf.faces = self._y_vertices, self._faces_dev
+            surf.y, surf.faces = self.state.y_vertices, self._faces_dev
             surf.sample_face = wp.array(face, dtype=wp.int32, device=d)
             surf.sample_bary = wp.array(bary, dtype=wp.vec3d, device=d)
             surf.sample_share = wp.array(share, dtype=wp.float64, device=d)
@@ -491,7 +462,7 @@ class EolBody(Body):
 
     def check_finite(self, frame: int, time_: float) -> None:
         if self._failure is None:
-            for q, arr in (("reference map", self._z), ("Eulerian velocity", self._v), ("surface", self._y_vertices)):
+            for q, arr in (("reference map", self.state.z), ("Eulerian velocity", self.state.v), ("surface", self.state.y_vertices)):
                 if not np.all(np.isfinite(arr.numpy())):
                     self._failure = (q, "", "non-finite")
                     break
@@ -535,14 +506,14 @@ class EolBody(Body):
         L, c = self._lagrangian_field()
         g_axes = self._axes().T @ self._gravity
         wp.launch(ks.node_velocities, dim=n, device=d,
-                  inputs=[self._v, self._mass, self._forces, self._grid, _mat(L), wp.vec3d(*c),
+                  inputs=[self.state.v, self._mass, self._forces, self._grid, _mat(L), wp.vec3d(*c),
                           _mat(self._F_L()), wp.vec3d(*g_axes), int(self.fictitious and self.lagrangian == "rigid"),
                           self._w, self._a])
         if self.damping > 0.0:
             shape = self.grid.node_shape
             self._tmp.zero_()
             wp.launch(ks.viscous_forces, dim=len(self._volumes), device=d,
-                      inputs=[self._w.reshape(shape), self._grid, self._y_pts, self._vol,
+                      inputs=[self._w.reshape(shape), self._grid, self.state.y_points, self._vol,
                               _mat(np.linalg.inv(self._F_L())), wp.float64(self.damping), self._tmp.reshape(shape)])
             wp.launch(ks.add_acceleration, dim=n, device=d,
                       inputs=[self._tmp, self._mass, self._a])
@@ -602,10 +573,10 @@ class EolBody(Body):
         if self.plasticity is not None:
             self._flowing.zero_()
             wp.launch(kp.plastic_flow, dim=len(self._volumes), device=d,
-                      inputs=[self._z.reshape(self.grid.node_shape), self._grid, self._y_pts,
+                      inputs=[self.state.z.reshape(self.grid.node_shape), self._grid, self.state.y_points,
                               _mat(self._F_L()), wp.float64(self.material.mu), wp.float64(self.material.lam),
                               wp.float64(self.plasticity.yield_stress), wp.float64(self.plasticity.flow_rate * dt),
-                              self._Fp_inv, self._flowing])
+                              self.state.Fp_inv, self._flowing])
             t = self._tick("plasticity", t)
         self._force_pass()
         self._tick("forces", t)
@@ -636,12 +607,12 @@ class EolBody(Body):
         mass3 = self._mass.reshape(shape)
         # v* extended one layer into empty nodes, then advected by itself: v^{t+1}
         wp.launch(ks.extrapolate, dim=shape, device=d, inputs=[self._vstar.reshape(shape), mass3, self._tmp.reshape(shape)])
-        self._advect(self._tmp, self._tmp, dt, self._v)
-        wp.launch(ks.extrapolate, dim=shape, device=d, inputs=[self._v.reshape(shape), mass3, self._tmp.reshape(shape)])
-        wp.copy(self._v, self._tmp)
+        self._advect(self._tmp, self._tmp, dt, self.state.v)
+        wp.launch(ks.extrapolate, dim=shape, device=d, inputs=[self.state.v.reshape(shape), mass3, self._tmp.reshape(shape)])
+        wp.copy(self.state.v, self._tmp)
         # z = y - u: Dz/Dt = 0, advected by v^{t+1}
-        wp.copy(self._tmp2, self._z)
-        self._advect(self._tmp2, self._v, dt, self._z)
+        wp.copy(self._tmp2, self.state.z)
+        self._advect(self._tmp2, self.state.v, dt, self.state.z)
 
     def _advect(self, q: wp.array, vel: wp.array, dt: float, out: wp.array) -> None:
         shape = self.grid.node_shape
@@ -661,9 +632,9 @@ class EolBody(Body):
 
     def _track(self) -> None:
         """Algorithm 2 for the material points and the surface vertices, each from its last position."""
-        z3 = self._z.reshape(self.grid.node_shape)
+        z3 = self.state.z.reshape(self.grid.node_shape)
         tol = self._positive["track_tol"] * self.grid.h
-        for zs, ys in ((self._z_pts, self._y_pts), (self._z_vert, self._y_vertices)):
+        for zs, ys in ((self._z_pts, self.state.y_points), (self._z_vert, self.state.y_vertices)):
             track_points(self._grid, z3, zs, ys, tol, 20, ys, self._iters, self._device)
 
     # -- contact --------------------------------------------------------------------------------
