@@ -68,6 +68,22 @@ class Body(ABC):
         if self._device is None:
             raise InvalidParameter(f"body '{self.name}': add it to a World (world.add) before reading or setting its state")
 
+    # -- conservation read-outs ----------------------------------------------------------------
+    # Every body type gives these with the same meaning, so users and tests can watch what the
+    # physics conserves. Totals over the whole body (rigid and deformation motion), world axes.
+    def linear_momentum(self) -> np.ndarray:
+        """Total linear momentum sum m v [kg m/s] (world)."""
+        raise NotImplementedError(f"{type(self).__name__} does not report linear momentum")
+
+    def angular_momentum(self, about: Sequence[float] | None = None) -> np.ndarray:
+        """Total angular momentum sum m (x - p) x v [kg m^2/s] (world) about the point p = ``about``
+        [m] (world), by default the body's current centre of mass."""
+        raise NotImplementedError(f"{type(self).__name__} does not report angular momentum")
+
+    def kinetic_energy(self) -> float:
+        """Total kinetic energy 1/2 sum m |v|^2 [J]."""
+        raise NotImplementedError(f"{type(self).__name__} does not report kinetic energy")
+
     # -- state --------------------------------------------------------------------------------
     def get_state(self) -> dict[str, np.ndarray]:
         """A copy of the body's state as named host arrays (what a checkpoint stores)."""

@@ -247,15 +247,23 @@ class BemBody(Body):
         return wmesh.signed_volume(self._surface.nodes + self.state.u.reshape(-1, 3), self._surface.faces)
 
     def linear_momentum(self) -> np.ndarray:
-        """m T_dot [kg m/s] (the frame carries the body's momentum; deformation momentum is not tracked)."""
+        """m T_dot [kg m/s]: the frame carries the body's momentum (the error correction of Sec.
+        3.2.1 keeps the displacement u free of rigid motion, so it adds none)."""
         return self.mass * self.frame.velocity
 
-    def angular_momentum(self) -> np.ndarray:
-        """L about the centre of mass, world [kg m^2/s]."""
-        return self.frame.L.copy()
+    def angular_momentum(self, about: Sequence[float] | None = None) -> np.ndarray:
+        """L [kg m^2/s] (world) about the centre of mass, or about the world point ``about``
+        (L + (T - p) x m T_dot); carried by the frame, like the linear momentum."""
+        f = self.frame
+        L = f.L.copy()
+        if about is not None:
+            L += np.cross(f.T - as_vec3(about, f"body '{self.name}': about"), self.mass * f.velocity)
+        return L
 
     def kinetic_energy(self) -> float:
-        """Rigid kinetic energy of the frame, 1/2 m |T_dot|^2 + 1/2 omega . L [J]."""
+        """Kinetic energy of the frame's motion, 1/2 m |T_dot|^2 + 1/2 omega . L [J]. The
+        deformation's own kinetic energy is not included: a surface-only method has no interior
+        velocities to integrate it from."""
         f = self.frame
         return 0.5 * self.mass * float(f.velocity @ f.velocity) + 0.5 * float(f.omega @ f.L)
 
