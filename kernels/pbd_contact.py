@@ -12,6 +12,9 @@ displacement of the particle relative to the collider over the substep,
     dx_t removed entirely         if |dx_t| <  mu d     (static friction: the particle sticks)
     dx_t scaled by mu d / |dx_t|  otherwise             (kinetic friction)
 
+Positions are x = x_pred + dx (see ``wsim.kernels.pbd``): the correction is added to dx, and
+also to dxc, the substep's contact corrections, whose angular impulse
+``wsim.kernels.pbd.restore_angular_momentum`` keeps apart from that of the internal constraints.
 Positions are float32; each thread touches one particle, so there are no races.
 """
 
@@ -41,18 +44,22 @@ def resolve_overlap(
     n: wp.vec3,
     depth: float,
     depth_prev: float,
-):
+) -> float:
     """Move x_prev and x_pred along n by the part of the correction that was already overlap at
-    the start of the substep (pre-stabilization: it changes positions, not velocities)."""
+    the start of the substep (pre-stabilization: it changes positions, not velocities); returns
+    that shift [m]."""
     shift = wp.min(depth, wp.max(depth_prev, 0.0))
     if shift > 0.0:
         x_prev[i] = x_prev[i] + n * shift
         x_pred[i] = x_pred[i] + n * shift
+        return shift
+    return 0.0
 
 
 @wp.kernel
 def ground_contact(
-    x: wp.array(dtype=wp.vec3),
+    dx: wp.array(dtype=wp.vec3),
+    dxc: wp.array(dtype=wp.vec3),
     x_prev: wp.array(dtype=wp.vec3),
     x_pred: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
@@ -65,19 +72,21 @@ def ground_contact(
     i = wp.tid()
     if inv_mass[i] == 0.0:
         return
-    p = x[i]
+    p = x_pred[i] + dx[i]
     depth = height + margin - wp.dot(p, normal)
     if depth <= 0.0:
         return
-    resolve_overlap(x_prev, x_pred, i, normal, depth, height + margin - wp.dot(x_prev[i], normal))
+    shift = resolve_overlap(x_prev, x_pred, i, normal, depth, height + margin - wp.dot(x_prev[i], normal))
     p = p + normal * depth
-    p = p + friction_correction(p - x_prev[i], normal, depth, mu)
-    x[i] = p
+    c = normal * (depth - shift) + friction_correction(p - x_prev[i], normal, depth, mu)
+    dx[i] = dx[i] + c
+    dxc[i] = dxc[i] + c
 
 
 @wp.kernel
 def mesh_contact(
-    x: wp.array(dtype=wp.vec3),
+    dx: wp.array(dtype=wp.vec3),
+    dxc: wp.array(dtype=wp.vec3),
     x_prev: wp.array(dtype=wp.vec3),
     x_pred: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
@@ -102,7 +111,7 @@ def mesh_contact(
         return
     M = transforms[step]
     Minv = inverses[step]
-    p_world = x[i]
+    p_world = x_pred[i] + dx[i]
     p = wp.transform_point(Minv, p_world)
     q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
     if not q.result:
@@ -126,4 +135,6 @@ def mesh_contact(
     depth_prev = margin - wp.dot(x_prev[i] - s_prev, wp.normalize(wp.transform_vector(transforms[step - 1], n)))
     resolve_overlap(x_prev, x_pred, i, n_world, depth, depth_prev)
     dx_rel = (target - x_prev[i]) - (s_now - s_prev)
-    x[i] = target + friction_correction(dx_rel, n_world, depth, mu)
+    c = (target - x_pred[i]) + friction_correction(dx_rel, n_world, depth, mu) - dx[i]
+    dx[i] = dx[i] + c
+    dxc[i] = dxc[i] + c

@@ -10,15 +10,23 @@ scene does not need retuning when the mesh resolution changes. The mapping (all 
 - Edge stretch, surface-only body: a membrane of thickness h has energy density (E h / 2) eps^2
   per unit area; giving each edge a third of its two faces' area A_e,
   alpha_e = L0^2 / (E h A_e)  [m/N].
-- Edge stretch, tet body: the same argument over the tets around the edge (a sixth of each tet's
-  volume, V_e): alpha_e = L0^2 / (E V_e). A spring network only approximates a continuum: its
-  Poisson ratio is not nu and its Young's modulus matches E to within a factor of order one.
+- Tet body: edge springs plus one volume constraint per tet, matched to linear elasticity
+  (energy density mu eps:eps + (lambda/2) tr(eps)^2). An edge of rest length L0 carrying V_e (a
+  sixth of the volume of each tet around it) with alpha_e = L0^2 / (s V_e) stores
+  (s/2) V_e eps_nn^2, eps_nn = n.eps.n its strain; averaged over directions
+  <eps_nn^2> = (2 eps:eps + tr(eps)^2) / 15, so the springs alone are an isotropic solid with
+  mu_s = lambda_s = s / 15 (a central-force network obeys the Cauchy relation, nu = 1/4). Hence
+  s = 15 mu gives the shear modulus, and the tet volumes add the rest of lambda:
+  alpha_t = V_t / (lambda - mu) [m^3/Pa] (the energy (lambda - mu)/2 (dV/V)^2 V). For nu < 1/4
+  (lambda < mu) the volume term would need a negative stiffness: the springs then take
+  s = 6 E (Young's modulus E at nu = 1/4) and there is no volume term. The earlier mapping
+  (s = E, alpha_t = V_t / K) made the solid ~5x too soft in shear: a ball sagged 65 mm on the
+  ground against a Hertz estimate of 29 mm.
 - Dihedral bending: a plate of bending modulus D = E h^3 / (12 (1 - nu^2)) bent to curvature
   1/R stores (D/2) R^-2 per unit area; a hinge of length |e| between faces of area A1, A2 bent
   by theta stores (1/2) theta^2 / alpha_b, which matches for alpha_b = (A1 + A2) / (D |e|^2).
 - Global volume: the energy (K/2) (dV)^2 / V0 of a bulk modulus K gives alpha_V = V0 / K [m^3/Pa]
   (0 in the incompressible limit).
-- Tet volume: alpha_t = V_t / K per tetrahedron.
 
 Masses: a tet body lumps rho V_t / 4 onto each tet vertex; a surface-only body is a solid of
 density rho whose mass rho V0 is lumped onto the surface vertices in proportion to their area.
@@ -39,7 +47,8 @@ from wsim.colouring import colour_constraints
 #: 2: tets="auto" classifies with the float32 BVH winding-number test of wsim.mesh.inside (was an
 #: exact float64 oracle); equal on every tested shape, but points within ~1e-7 of the size from
 #: the surface may now fall the other way.
-MODEL_FORMAT_VERSION = 2
+#: 3: tet bodies map E, nu to edge springs s = 15 mu and tet volumes lambda - mu (were E and K).
+MODEL_FORMAT_VERSION = 3
 
 FAMILY_KINDS = ("distance", "bending", "tet_volume")
 
@@ -172,6 +181,20 @@ def _override(value: float | None, default: np.ndarray, what: str) -> np.ndarray
     return np.full_like(default, v)
 
 
+def _spring_modulus(material: ElasticMaterial) -> float:
+    """s [Pa] of the tet-edge springs (module docstring): 15 mu, or 6 E where lambda < mu."""
+    if material.incompressible or material.lam >= material.mu:
+        return 15.0 * material.mu
+    return 6.0 * material.E
+
+
+def _volume_modulus(material: ElasticMaterial) -> float:
+    """Modulus [Pa] of the per-tet volume constraints: lambda - mu (inf if incompressible, 0 if nu < 1/4)."""
+    if material.incompressible:
+        return np.inf
+    return max(material.lam - material.mu, 0.0)
+
+
 def _tet_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
     p = points[tets]
     return np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])) / 6.0
@@ -278,7 +301,7 @@ def build_model(
             ve = np.zeros(len(uniq))
             np.add.at(ve, inverse.ravel(), np.repeat(vt / 6.0, 6))
             length = np.linalg.norm(points[uniq[:, 0]] - points[uniq[:, 1]], axis=1)
-            alpha = length**2 / (E * ve)
+            alpha = length**2 / (_spring_modulus(material) * ve)
         else:
             uniq = wmesh.edges(faces)
             area = wmesh.face_areas(points, faces)
@@ -322,9 +345,11 @@ def build_model(
             families.append(_family("bending", hg.astype(np.int32), theta0, alpha, n))
 
     if has_tets and tet_volume:
-        alpha = vt / K if np.isfinite(K) else np.zeros(len(vt))
-        alpha = _override(tet_compliance, alpha, f"body '{name}': tet_compliance")
-        families.append(_family("tet_volume", tets, vt, alpha, n))
+        lam_vol = _volume_modulus(material)
+        if lam_vol > 0.0 or tet_compliance is not None:
+            alpha = vt / lam_vol if np.isfinite(lam_vol) and lam_vol > 0.0 else np.zeros(len(vt))
+            alpha = _override(tet_compliance, alpha, f"body '{name}': tet_compliance")
+            families.append(_family("tet_volume", tets, vt, alpha, n))
 
     vol = None
     if volume:

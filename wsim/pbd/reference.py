@@ -17,12 +17,16 @@ import numpy as np
 from wsim.pbd.model import ConstraintFamily, PbdModel
 
 
-def _delta_lambda(C, lam, w_grad2, grad_dot_dx, alpha, beta, h):
+def _delta_lambda(C, lam, w_grad2, dC, alpha, beta, h):
     alpha_t = alpha / (h * h)
     gamma = beta / h
     denom = (1.0 + gamma) * w_grad2 + alpha_t
     safe = np.where(denom > 0.0, denom, 1.0)
-    return np.where(denom > 0.0, (-C - alpha_t * lam - gamma * grad_dot_dx) / safe, 0.0)
+    return np.where(denom > 0.0, (-C - alpha_t * lam - gamma * dC) / safe, 0.0)
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    return np.where(a > np.pi, a - 2 * np.pi, np.where(a < -np.pi, a + 2 * np.pi, a))
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -41,6 +45,7 @@ def _project_family(f: ConstraintFamily, x, x_prev, w, lam, beta, h) -> None:
             n = d / np.where(length > 1e-12, length, 1.0)[:, None]
             grads = [n, -n]
             C = length - f.rest[sl]
+            dC = length - np.linalg.norm(x_prev[i] - x_prev[j], axis=1)
         elif f.kind == "bending":
             a, b, p, q = idx.T
             w1, w2, e0, e1 = x[a], x[b], x[p], x[q]
@@ -61,8 +66,12 @@ def _project_family(f: ConstraintFamily, x, x_prev, w, lam, beta, h) -> None:
             n1h = n1 / np.sqrt(n1s)[:, None]
             n2h = n2 / np.sqrt(n2s)[:, None]
             theta = np.arctan2(_dot(np.cross(n1h, n2h), E / elen[:, None]), _dot(n1h, n2h))
-            C = theta - f.rest[sl]
-            C = np.where(C > np.pi, C - 2 * np.pi, np.where(C < -np.pi, C + 2 * np.pi, C))
+            C = _wrap(theta - f.rest[sl])
+            pw1, pw2, pe0, pe1 = x_prev[a], x_prev[b], x_prev[p], x_prev[q]
+            pE = pe1 - pe0
+            pn1, pn2 = np.cross(pE, pw1 - pe0), np.cross(pe0 - pe1, pw2 - pe1)
+            theta_prev = np.arctan2(_dot(np.cross(pn1, pn2), pE) / np.maximum(np.linalg.norm(pE, axis=1), 1e-30), _dot(pn1, pn2))
+            dC = _wrap(theta - theta_prev)
             grads = [g1, g2, g3, g4]
         else:  # tet_volume
             i0, i1, i2, i3 = idx.T
@@ -70,11 +79,12 @@ def _project_family(f: ConstraintFamily, x, x_prev, w, lam, beta, h) -> None:
             g1, g2, g3 = np.cross(d2, d3) / 6.0, np.cross(d3, d1) / 6.0, np.cross(d1, d2) / 6.0
             grads = [-(g1 + g2 + g3), g1, g2, g3]
             C = _dot(d1, g1) - f.rest[sl]
+            p0 = x_prev[i0]
+            dC = _dot(d1, g1) - _dot(x_prev[i1] - p0, np.cross(x_prev[i2] - p0, x_prev[i3] - p0)) / 6.0
             ok = w[i0] + w[i1] + w[i2] + w[i3] > 0
         cols = idx.T
         w_grad2 = sum(w[k] * _dot(g, g) for k, g in zip(cols, grads))
-        gdx = sum(_dot(g, x[k] - x_prev[k]) for k, g in zip(cols, grads))
-        dl = np.where(ok, _delta_lambda(C, lam[sl], w_grad2, gdx, f.compliance[sl], beta, h), 0.0)
+        dl = np.where(ok, _delta_lambda(C, lam[sl], w_grad2, dC, f.compliance[sl], beta, h), 0.0)
         lam[sl] += dl
         for k, g in zip(cols, grads):
             x[k] += g * (w[k] * dl)[:, None]
