@@ -17,9 +17,30 @@ row's J coefficients, right side and overlap into a fixed slot per row with atom
 ``compact_rows`` packs the rows that received samples (clearing their slots for the next step):
 only those travel to the host. Per row:
 
-    J: 3 (block + 1)^3 coefficients  int_{Gamma_A in Omega, block} Phi_s n_A dGamma  (velocity axes)
-    b: sum of n_A . v_B - overlap / tau  (collider flux minus relaxation of existing overlap)
+    J: 3 (block + 1)^3 coefficients  int_{Gamma_A in Omega, block} Phi_s (n_A . n_B) n_B dGamma  (velocity axes)
+    b: sum of (n_A . n_B) n_B . v_B - overlap / tau  (collider flux minus relaxation of existing overlap)
     overlap volume: sum of |n_A . n_B| depth dGamma
+
+Frictionless contact pushes along the collider's normal n_B only. The exact flux n_A . v_A of Eq.
+(27) is kept for the rate of the overlap of the whole intersection (by the divergence theorem,
+sum n_A dGamma over the body's surface inside a plane is -n_B times the area of the cut, so a
+normal-only and the exact gradient agree for every rigid translation), but per collision cell the
+body's own normal n_A has a tangential part (the sides of the cap below a plane tilt outwards):
+the rows' impulses J^T lambda then push sideways wherever neighbouring cells' multipliers differ,
+a net tangential impulse of 0.02-0.2 % of the normal one that slid a ball resting on a
+frictionless plane by 7.6 cm in 3 s (issue 16). Each sample's coefficient is therefore n_A
+projected on the collider's normal, (n_A . n_B) n_B dGamma (the projected area of the sample
+along n_B): the same constraint on normal motion, no constraint on, and no impulse along, the
+collider's tangent plane.
+
+The velocity of the body at a sample is the mass-weighted mean of its cell's nodes,
+sum_s Phi_s m_s w_s / sum_s Phi_s m_s (Phi_s m_s / sum Phi m is the row's weight of node s, in
+place of Phi_s). With plain Phi_s the QP, which minimizes sum m |w - w_hat|^2, satisfies a row most
+cheaply by changing the nodes of least mass: a node holding a sliver of material (at the
+``mass_floor``, 2 % of a full node) next to a flat face took the impulse of the whole face and
+was flung at 10-20 m/s on the first contact of a landing box, until its material left the grid
+(issue 16). Mass-weighted, an impulse changes the cell's nodes by the same velocity whatever
+their masses (as particle-to-grid transfers do); for a uniform velocity the two agree.
 
 Positions come from the tracked intermediate vertices y and the Lagrangian map x = F y + T
 (F = R rigid, A affine). Collider meshes are float32 (Warp BVH); everything else is float64.
@@ -51,6 +72,7 @@ class ContactSurface:
     grid: Grid
     block: int
     ccells: wp.vec3i
+    mass: wp.array(dtype=wp.float64)
 
 
 @wp.func
@@ -86,12 +108,24 @@ def accumulate_row(acc: wp.array2d(dtype=wp.float64), flag: wp.array(dtype=wp.in
     nc = surf.ccells
     row = ((collider * nc[0] + cc[0]) * nc[1] + cc[1]) * nc[2] + cc[2]
     flag[row] = 1
+    # the sample's velocity as the mass-weighted mean of its cell's nodes, sum Phi m w / sum Phi m:
+    # an impulse then changes every node of the cell by about the same velocity, instead of
+    # flinging the nodes that hold a sliver of material (see the module docstring)
+    ny = surf.grid.shape[1]
+    nz = surf.grid.shape[2]
+    pm = wp.float64(0.0)
+    for c in range(8):
+        node = ((cell[0] + c // 4) * ny + cell[1] + (c // 2) % 2) * nz + cell[2] + c % 2
+        pm += corner_weight(c, t) * surf.mass[node]
     for c in range(8):
         li = cell[0] + c // 4 - k * cc[0]
         lj = cell[1] + (c // 2) % 2 - k * cc[1]
         lk = cell[2] + c % 2 - k * cc[2]
         slot = 3 * ((li * (k + 1) + lj) * (k + 1) + lk)
         phi = corner_weight(c, t)
+        if pm > wp.float64(0.0):
+            node = ((cell[0] + c // 4) * ny + cell[1] + (c // 2) % 2) * nz + cell[2] + c % 2
+            phi = phi * surf.mass[node] / pm
         for d in range(3):
             wp.atomic_add(acc, row, slot + d, phi * coeff[d])
     n = acc.shape[1]
@@ -103,10 +137,13 @@ def accumulate_row(acc: wp.array2d(dtype=wp.float64), flag: wp.array(dtype=wp.in
 def add_sample(acc: wp.array2d(dtype=wp.float64), flag: wp.array(dtype=wp.int32), surf: ContactSurface,
                collider: int, yp: wp.vec3d, x: wp.vec3d, an: wp.vec3d, cn: wp.vec3d, depth: wp.float64,
                G: wp.mat33d, g: wp.vec3d):
-    """A sample inside the collider: coefficient n_A in the velocity axes, right side n_A . v_B(x) -
+    """A sample inside the collider: coefficient (n_A . n_B) n_B in the velocity axes (n_A projected
+    on the collider's normal: see the module docstring), right side that coefficient . v_B(x) -
     overlap / tau with the collider's velocity v_B = G x + g, overlap |n_A . n_B| depth."""
-    vol = wp.abs(wp.dot(an, cn)) * depth
-    accumulate_row(acc, flag, surf, collider, yp, surf.to_axes * an, wp.dot(an, G * x + g) - vol * surf.inv_tau, vol)
+    proj = wp.dot(an, cn)
+    vol = wp.abs(proj) * depth
+    coeff = proj * cn
+    accumulate_row(acc, flag, surf, collider, yp, surf.to_axes * coeff, wp.dot(coeff, G * x + g) - vol * surf.inv_tau, vol)
 
 
 @wp.kernel

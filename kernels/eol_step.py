@@ -22,6 +22,7 @@ For affine coordinates (inertial world axes) only the advection term remains: -2
 
 from __future__ import annotations
 
+import numpy as np
 import warp as wp
 
 from wsim.kernels.eol_grid import (
@@ -54,10 +55,20 @@ def node_velocities(
     F_L: wp.mat33d,
     gravity: wp.vec3d,
     centrifugal: int,
+    gyro: wp.mat33d,
+    real_mass: wp.array(dtype=wp.float64),
     w: wp.array(dtype=wp.vec3d),
     a: wp.array(dtype=wp.vec3d),
 ):
-    """w_s (current material velocity) and a_s (acceleration) of every node with mass; zero elsewhere."""
+    """w_s (current material velocity) and a_s (acceleration) of every node with mass; zero elsewhere.
+
+    a = gyro (f / m + (m_real / m) (-2 L v - L L y)) + gravity. The centrifugal and Coriolis loads
+    act on the node's material (``real_mass``, before the ``mass_floor``), not on its phantom mass:
+    on a sliver node the floor can be many times its material, so the fictitious loads on the phantom
+    mass were unbalanced by any elastic force (issue 16: +21 % angular momentum and +51 % energy in
+    20 s at pi rad/s, 6 cells; 0 with this, ``tools/study_eol_loads.py``). ``gyro`` = (I + tau L)^-1
+    makes the Coriolis term implicit-midpoint (see ``coriolis_matrix``); the identity gives the
+    explicit (forward Euler) form."""
     s = wp.tid()
     if mass[s] <= wp.float64(0.0):
         w[s] = wp.vec3d()
@@ -66,10 +77,29 @@ def node_velocities(
     y = node_position(s, grid)
     Ly = L * y
     w[s] = Ly + c + F_L * v[s]
-    acc = forces[s] / mass[s] + gravity - wp.float64(2.0) * (L * v[s])
+    fict = -wp.float64(2.0) * (L * v[s])
     if centrifugal != 0:
-        acc = acc - L * Ly
-    a[s] = acc
+        fict = fict - L * Ly
+    acc = forces[s] / mass[s] + (real_mass[s] / mass[s]) * fict
+    a[s] = gyro * acc + gravity
+
+
+def coriolis_matrix(L: np.ndarray, tau: float, implicit: bool) -> np.ndarray:
+    """(I + tau L)^-1: the Coriolis term -2 L v taken at the step's midpoint velocity.
+
+    The forward Euler update v' = v + dt (f - 2 L v) has, for the skew L of a rigid frame,
+    eigenvalues of modulus sqrt(1 + (2 |omega| dt)^2); coupled with the explicit (symplectic-Euler)
+    elasticity, a linear oscillator x'' = -k x - 2 omega x x' then grows at every dt (by 1.6e-2
+    per step at omega_e dt = 1.7, omega dt = 0.01). The implicit midpoint v' = v + dt (f - L (v + v'))
+    is v' = v + dt (I + dt L)^-1 (f - 2 L v): a linear map of the same acceleration, so the step
+    keeps its w_hat = w + dt a form (and its split and QP), and the oscillator's map is neutrally
+    stable (|eigenvalues| = 1) up to the elastic limit. Exact when the step's dt equals tau (free
+    flight: tau is the step's cap); a CFL- or contact-shortened step uses its guess's factor
+    (first order). It was not the main cause of issue 16's spin-up (the phantom mass was: see
+    ``node_velocities``); there it halves the remaining drift (``tools/study_eol_loads.py``)."""
+    if not implicit or tau <= 0.0:
+        return np.eye(3)
+    return np.linalg.inv(np.eye(3) + tau * np.asarray(L, dtype=np.float64))
 
 
 @wp.kernel

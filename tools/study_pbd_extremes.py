@@ -42,7 +42,6 @@ def run(name: str, device: str) -> dict:
     c = x.mean(0)
     body.set_velocities(body.velocities() + 0.1 * (x - c) / R)
     P0, L0, K0 = body.linear_momentum(), body.angular_momentum(), body.kinetic_energy()
-    m = body.masses.sum()
     out = {"case": name, "device": device, "E": o["E"], "nu": o["nu"], "spin_rad_s": o["spin"], "substeps": o["substeps"],
            "frames": o["frames"], "particles": body.model.n_particles}
     t = time.perf_counter()

@@ -32,7 +32,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 import warp as wp
@@ -50,12 +50,13 @@ from wsim.eol.timestep import adaptive_dt, elastic_dt_limit
 from wsim.eol.tracking import track_points
 from wsim.errors import InvalidParameter, SimulationDiverged
 from wsim.kernels import eol_contact as kc
+from wsim.kernels import eol_loads as kl
 from wsim.kernels import eol_plastic as kp
 from wsim.kernels import eol_step as ks
 from wsim.kernels.eol_grid import grid_struct
 from wsim.materials import ElasticMaterial
 from wsim.rigid import advance_pose, cross_matrix
-from wsim.validate import as_rotation, finite_number, positive_int
+from wsim.validate import as_rotation, as_vec3, finite_number, positive_int
 
 if TYPE_CHECKING:
     from wsim.colliders import Collider
@@ -140,6 +141,20 @@ class EolBody(Body):
             the Eulerian velocities then carry no net linear or angular momentum, so advection
             error cannot change the body's momentum to first order; the default).
         profile: synchronize the device after each stage so ``timings`` splits GPU time by stage.
+        position: translation applied to the mesh [m] (like PbdBody and BemBody; ``rotation`` turns
+            the mesh about its centre of mass).
+        velocity_field: ``fn(x)`` -> (n, 3) initial world velocities [m/s] at the (n, 3) world rest
+            positions x of the grid nodes that hold material, added to ``velocity`` and
+            ``angular_velocity``; the body's least-squares split puts its rigid (affine) part into
+            the frame and leaves the rest as Eulerian velocity (a rigid field: v = 0 exactly).
+        coriolis: "midpoint" (default: the Coriolis term -2 L v at the step's midpoint velocity,
+            ``eol_step.coriolis_matrix``) or "explicit" (forward Euler, the earlier scheme).
+
+    Loads: ``add_traction`` (surface tractions [Pa], world axes), ``add_body_force`` (accelerations
+    [m/s^2]); ``load_impulse`` is the momentum they delivered. A body that starts more than half a
+    cell inside a collider is refused at its first step (``InvalidParameter``); one whose material
+    comes within half a cell of its grid's boundary stops the run (``SimulationDiverged``,
+    "material left the grid").
     """
 
     def __init__(
@@ -169,9 +184,23 @@ class EolBody(Body):
         mass_floor: float = 0.02,
         split: str = "mass",
         profile: bool = False,
+        position: Sequence[float] = (0.0, 0.0, 0.0),
+        velocity_field: Callable[[np.ndarray], Any] | None = None,
+        coriolis: str = "midpoint",
     ) -> None:
         super().__init__(name, velocity, angular_velocity)
         p = f"body '{name}'"
+        self._offset = as_vec3(position, f"{p}: position [m]")
+        if velocity_field is not None and not callable(velocity_field):
+            raise InvalidParameter(f"{p}: velocity_field must be a callable fn(x) -> (n, 3) velocities [m/s], "
+                                   f"got {type(velocity_field).__name__}")
+        self._velocity_field = velocity_field
+        if coriolis not in ("midpoint", "explicit"):
+            raise InvalidParameter(f"{p}: coriolis = {coriolis!r} must be 'midpoint' or 'explicit'")
+        self.coriolis = coriolis
+        self._tractions: list[Callable[[float], Any]] = []
+        self._point_forces: list[Callable[[float, np.ndarray], Any]] = []
+        self._accelerations: list[Callable[[float], Any]] = []
         if not isinstance(material, ElasticMaterial):
             raise InvalidParameter(f"{p}: material must be a wsim.ElasticMaterial")
         if material.incompressible:
@@ -341,6 +370,22 @@ class EolBody(Body):
         """sum_s m_s x_dot_s over the nodes [kg m/s] (world)."""
         return self.node_masses() @ self.node_world_velocities()
 
+    def node_world_positions(self) -> np.ndarray:
+        """(n_nodes, 3) world positions of the grid nodes [m]: x = F_L y + T."""
+        self._require_bound()
+        return self.grid.node_positions() @ self.state.F.T + self.state.T
+
+    def angular_momentum(self, about: Sequence[float] | None = None) -> np.ndarray:
+        """sum_s m_s (x_s - p) x x_dot_s over the nodes [kg m^2/s] (world), about p = ``about``
+        (world) or, by default, the nodes' current centre of mass. The lumped node masses are the
+        ones the step conserves momentum with (split, QP, contact impulse); their second moment
+        exceeds the continuum's by O(h^2) (mass spread to the corners of a cell, the ``mass_floor``):
+        +11 % for a sphere at 8 cells across, +5 % at 16 (``tools/study_eol_fidelity.py``)."""
+        m = self.node_masses()
+        x = self.node_world_positions()
+        p = (m @ x) / m.sum() if about is None else np.asarray(about, dtype=np.float64).reshape(3)
+        return (m[:, None] * np.cross(x - p, self.node_world_velocities())).sum(axis=0)
+
     def kinetic_energy(self) -> float:
         m = self.node_masses()
         return 0.5 * float(m @ np.einsum("ij,ij->i", w := self.node_world_velocities(), w))
@@ -358,6 +403,128 @@ class EolBody(Body):
         """(P, 3, 3) F_p^-1 at the material points (identity without plasticity)."""
         self._require_bound()
         return self.state.Fp_inv.numpy() if self.plasticity else np.broadcast_to(np.eye(3), (len(self._volumes), 3, 3))
+
+    # -- loads ---------------------------------------------------------------------------------
+    def add_traction(self, fn: Callable[[float], Any]) -> None:
+        """Add a surface load: ``fn(t)`` returns (V, 3) tractions [Pa] per surface vertex in **world**
+        axes (BemBody's are in frame axes: an EoL body's deformation is not small in its frame).
+
+        Each vertex's traction times its lumped area on the deformed surface (a third of its
+        triangles' current areas, ``vertex_areas()``) is a point force at the vertex's intermediate
+        position y, spread to the nodes of its cell by the trilinear shape functions (over the nodes
+        with mass: the total is kept exactly, so momentum changes by exactly its impulse). Evaluated
+        at each step's start time (like gravity: forward Euler). Loads add up; they are functions of
+        time, not state (a checkpoint does not store them). For a pressure p(t):
+        ``body.add_traction(lambda t: -p(t) * body.vertex_normals())``."""
+        if not callable(fn):
+            raise InvalidParameter(f"body '{self.name}': add_traction takes a callable fn(t) -> (V, 3) tractions [Pa], "
+                                   f"got {type(fn).__name__}")
+        self._tractions.append(fn)
+
+    def add_body_force(self, fn: Callable[..., Any], *, per_point: bool = False) -> None:
+        """Add a body force as an acceleration [m/s^2] (world axes), like gravity.
+
+        ``fn(t)`` returns a (3,) acceleration, uniform over the body (the force density is rho times
+        it; it goes exactly into the frame, like gravity). With ``per_point=True``, ``fn(t, x)``
+        takes the (P, 3) world positions of the material points and returns their (P, 3)
+        accelerations; each point's force rho w_p a_p is spread to the nodes of its cell by the
+        trilinear shape functions. Evaluated at each step's start time; loads add up."""
+        if not callable(fn):
+            raise InvalidParameter(f"body '{self.name}': add_body_force takes a callable fn(t) -> (3,) acceleration "
+                                   f"[m/s^2], got {type(fn).__name__}")
+        (self._point_forces if per_point else self._accelerations).append(fn)
+
+    @property
+    def load_impulse(self) -> np.ndarray:
+        """Momentum delivered by the tractions and body forces so far [kg m/s] (world)."""
+        return np.zeros(3) if self.state is None else self.state.load_impulse
+
+    def vertex_areas(self) -> np.ndarray:
+        """(V,) lumped areas of the deformed surface: a third of each incident triangle's area [m^2]."""
+        x = self.points()
+        f = self._faces
+        a = 0.5 * np.linalg.norm(np.cross(x[f[:, 1]] - x[f[:, 0]], x[f[:, 2]] - x[f[:, 0]]), axis=1)
+        return np.bincount(f.ravel(), weights=np.repeat(a / 3.0, 3), minlength=len(x))
+
+    def vertex_normals(self) -> np.ndarray:
+        """(V, 3) outward unit normals of the deformed surface (area-weighted, world axes)."""
+        x = self.points()
+        f = self._faces
+        fn = np.cross(x[f[:, 1]] - x[f[:, 0]], x[f[:, 2]] - x[f[:, 0]])
+        n = np.zeros_like(x)
+        for k in range(3):
+            np.add.at(n, f[:, k], fn)
+        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+
+    def _load_value(self, value: Any, shape: tuple[int, ...], what: str, t: float) -> np.ndarray:
+        try:
+            a = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise InvalidParameter(f"body '{self.name}': {what} at t = {t:.6g} s is not numeric") from None
+        if a.shape != shape:
+            raise InvalidParameter(f"body '{self.name}': {what} at t = {t:.6g} s has shape {a.shape}; expected {shape}")
+        if not np.all(np.isfinite(a)):
+            raise InvalidParameter(f"body '{self.name}': {what} at t = {t:.6g} s is not finite")
+        return a
+
+    def _body_acceleration(self, t: float) -> np.ndarray:
+        """The uniform body-force accelerations at t [m/s^2] (world)."""
+        acc = np.zeros(3)
+        for fn in self._accelerations:
+            acc += self._load_value(fn(t), (3,), "a body force (acceleration [m/s^2])", t)
+        return acc
+
+    def _apply_loads(self, t: float) -> None:
+        """Tractions and per-point body forces at t, spread to the nodes and added to a (a += f / m);
+        the total delivered (world) is kept for the load impulse. All loads are evaluated and checked
+        before anything is added, so a bad load leaves the state as it was."""
+        d = self._device
+        A = self._axes()  # velocity axes -> world
+        work = []
+        if self._tractions:
+            V = len(self._z_vertices)
+            tr = sum(self._load_value(fn(t), (V, 3), "a traction [Pa]", t) for fn in self._tractions)
+            work.append((self.state.y_vertices, self.vertex_areas()[:, None] * tr))
+        if self._point_forces:
+            st = self.state
+            x = st.y_points.numpy() @ st.F.T + st.T
+            acc = sum(self._load_value(fn(t, x), x.shape, "a body force (acceleration [m/s^2] per point)", t)
+                      for fn in self._point_forces)
+            work.append((st.y_points, (self.material.rho * self._volumes)[:, None] * acc))
+        shape = self.grid.node_shape
+        self._tmp.zero_()
+        applied = wp.zeros(1, dtype=wp.vec3d, device=d)
+        for y, f_world in work:
+            wp.launch(kl.scatter_point_forces, dim=len(f_world), device=d,
+                      inputs=[y, wp.array(f_world @ A, dtype=wp.vec3d, device=d), self._mass.reshape(shape),
+                              self._grid, self._tmp.reshape(shape), applied])
+        wp.launch(ks.add_acceleration, dim=self.grid.n_nodes, device=d, inputs=[self._tmp, self._mass, self._a])
+        self._load_force = A @ np.array(applied.numpy()[0])
+
+    def _check_initial_overlap(self) -> None:
+        """Refuse a body that starts deeper than half a cell inside a collider (it would start
+        inside and crawl out at a collapsing dt); shallower overlap is left to contact."""
+        x = self.points()
+        tol = 0.5 * self.grid.h
+        for ci, col in enumerate(self._colliders):
+            plane = self._surfaces.plane(ci)
+            if plane is not None:
+                nrm, height = plane
+                depth = float(np.max(height - x @ np.asarray(nrm, dtype=np.float64)))
+            else:
+                M = self._surfaces.matrix(ci, self.state.time)
+                local = (x - M[:3, 3]) @ np.linalg.inv(M[:3, :3]).T
+                out = wp.zeros(len(x), dtype=wp.float32, device=self._device)
+                wp.launch(kl.mesh_depth, dim=len(x), device=self._device,
+                          inputs=[col.device_mesh(self._device).id,
+                                  wp.array(local.astype(np.float32), dtype=wp.vec3, device=self._device),
+                                  float(col.extent), out])
+                depth = float(out.numpy().max())
+            if depth > tol:
+                raise InvalidParameter(
+                    f"body '{self.name}': starts {depth:.4g} m inside collider '{col.name}' at t = {self.state.time:.6g} s "
+                    f"(deepest surface point; the tolerance is half a cell, {tol:.3g} m): place it outside, "
+                    f"e.g. with position=")
 
     # -- Body interface --------------------------------------------------------------------------
     def bind(self, device: wp.Device, gravity: np.ndarray, up: np.ndarray) -> None:
@@ -389,7 +556,7 @@ class EolBody(Body):
             Fp_inv=wp.array(np.broadcast_to(np.eye(3), (len(self._volumes) if plastic else 1, 3, 3)).copy(),
                             dtype=wp.mat33d, device=d),
             F=F,
-            T=self.com.copy(),
+            T=self.com + self._offset,  # the mesh as given, moved by position=
             Tdot=v0.copy(),  # world velocity of the frame origin
             omega=F.T @ w0,  # rigid: body axes
             Adot=cross_matrix(w0) @ F,  # affine
@@ -398,6 +565,7 @@ class EolBody(Body):
         # derived from the state by the force pass
         self._forces = wp.zeros(n, **vec)
         self._mass = wp.zeros(n, dtype=wp.float64, device=d)
+        self._mass_real = wp.zeros(n, dtype=wp.float64, device=d)  # before the mass floor
         self._energy = wp.zeros(1, dtype=wp.float64, device=d)
         # scratch
         self._w = wp.zeros(n, **vec)
@@ -407,16 +575,53 @@ class EolBody(Body):
         self._vstar = wp.zeros(n, **vec)
         self._tmp = wp.zeros(n, **vec)
         self._tmp2 = wp.zeros(n, **vec)
+        self._w_hat = wp.zeros(n, **vec)  # the unconstrained w, a of a step in contact (QP re-solves)
+        self._a_hat = wp.zeros(n, **vec)
         self._advect_scratch = (wp.zeros(shape, **vec), wp.zeros(shape, **vec)) if self.advection == "bfecc" else None
         self._chunks = ks.CHUNKS_CUDA if d.is_cuda else ks.CHUNKS_CPU
         self._moments = wp.zeros(40, dtype=wp.float64, device=d)
-        self._vmax = wp.zeros(6, dtype=wp.float64, device=d)
+        self._vmax = wp.zeros(8, dtype=wp.float64, device=d)  # max |v*_0|, |v*_1| per axis; outside the grid
         self._iters = wp.zeros(max(len(self._volumes), len(self._z_vertices)), dtype=wp.int32, device=d)
         self._flowing = wp.zeros(1, dtype=wp.int32, device=d)
         self._m_total = 0.0
+        self._load_force = np.zeros(3)
         self._colliders: list[Collider] = []
         self._device = device
         self._force_pass()
+        if self._velocity_field is not None:
+            self._set_velocity_field()
+
+    def _set_velocity_field(self) -> None:
+        """Initial velocity = velocity + angular_velocity x (x - com) + velocity_field(x) at the nodes
+        with mass (world rest positions), split by the body's own least-squares split (Eq. 23): the
+        Lagrangian part goes to the frame, the residual to the Eulerian velocities (a rigid field
+        leaves v = 0)."""
+        st = self.state
+        mass = self._mass.numpy()
+        has = mass > 0.0
+        x = self.grid.node_positions() @ st.F.T + st.T
+        u = self._load_value(self._velocity_field(x[has]), (int(has.sum()), 3), "velocity_field [m/s]", 0.0)
+        u = u + self.initial_velocity + np.cross(self.initial_angular_velocity, x[has] - st.T)
+        w = np.zeros((self.grid.n_nodes, 3))
+        w[has] = u @ self._axes()  # world -> velocity axes (rigid: body axes)
+        d = self._device
+        self._w.assign(w)
+        self._a.zero_()
+        if self.lagrangian == "eulerian":
+            st.v.assign(w)
+            return
+        (L0, c0), _ = self._split(self._w, self._a)
+        self._vmax.zero_()
+        zero = wp.vec3d()
+        wp.launch(ks.eulerian_residual, dim=self._chunks, device=d,
+                  inputs=[self._w, self._a, self._mass, self._grid, _mat(L0), wp.vec3d(*c0), _mat(np.zeros((3, 3))),
+                          zero, _mat(np.linalg.inv(self._F_L())), self._chunks, self._v0, self._v1, self._vmax])
+        wp.copy(st.v, self._v0)
+        if self.lagrangian == "rigid":
+            st.omega = np.array([L0[2, 1], L0[0, 2], L0[1, 0]])
+            st.Tdot = st.F @ c0
+        else:
+            st.Adot, st.Tdot = np.array(L0), np.array(c0)
 
     def attach_colliders(self, surfaces: Surfaces | Sequence[Collider]) -> None:
         if not isinstance(surfaces, Surfaces):  # a bare list (tests drive a body without a World)
@@ -437,6 +642,7 @@ class EolBody(Body):
             surf.inv_tau = wp.float64(1.0 / self._positive["contact_relaxation"])
             surf.grid = self._grid
             surf.block, surf.ccells = k, wp.vec3i(*self._ccells)
+            surf.mass = self._mass  # the lumped masses (updated in place by each force pass)
             self._surface = surf
             n_rows = len(self._colliders) * int(np.prod(self._ccells))
             width = 3 * (k + 1) ** 3 + 2
@@ -453,6 +659,9 @@ class EolBody(Body):
         """Adaptive steps (Eq. 33) from the body's time to t1, each capped by the frame end, the
         elastic limit and ``dt_max``."""
         self._require_bound()
+        if self.state.steps == 0 and self._colliders and not getattr(self, "_overlap_checked", False):
+            self._check_initial_overlap()
+            self._overlap_checked = True
         eps = 1e-9 * max(t1 - t0, 1e-12)
         while self._failure is None and self.time < t1 - eps:
             cap = min(t1 - self.time, self.dt_elastic, self.dt_max or math.inf)
@@ -493,6 +702,7 @@ class EolBody(Body):
         sample_forces(self._grid, self.state.z.reshape(shape), self.state.y_points, self._vol, self.state.Fp_inv,
                       self.plasticity is not None, self._F_L(), self.material, self._forces.reshape(shape),
                       self._mass.reshape(shape), self._energy, self._device)
+        wp.copy(self._mass_real, self._mass)
         if self._mass_floor > 0.0:
             wp.launch(ks.floor_mass, dim=self.grid.n_nodes, device=self._device,
                       inputs=[self._mass, wp.float64(self._mass_floor)])
@@ -504,11 +714,16 @@ class EolBody(Body):
         t = time.perf_counter()
         # 1. forces (the force pass of this state was done at the end of the last step)
         L, c = self._lagrangian_field()
-        g_axes = self._axes().T @ self._gravity
+        self._body_acc = self._body_acceleration(st.time) if self._accelerations else np.zeros(3)
+        g_axes = self._axes().T @ (self._gravity + self._body_acc)
+        dt_guess = min(cap, 2.0 * st.dt_prev)  # the QP's guess of dt, and the Coriolis factor's
+        gyro = ks.coriolis_matrix(L, dt_guess, self.coriolis == "midpoint")
         wp.launch(ks.node_velocities, dim=n, device=d,
                   inputs=[self.state.v, self._mass, self._forces, self._grid, _mat(L), wp.vec3d(*c),
                           _mat(self._F_L()), wp.vec3d(*g_axes), int(self.fictitious and self.lagrangian == "rigid"),
-                          self._w, self._a])
+                          _mat(gyro), self._mass_real, self._w, self._a])
+        if self._tractions or self._point_forces:
+            self._apply_loads(st.time)
         if self.damping > 0.0:
             shape = self.grid.node_shape
             self._tmp.zero_()
@@ -519,7 +734,6 @@ class EolBody(Body):
                       inputs=[self._tmp, self._mass, self._a])
         t = self._tick("forces", t)
         # 2-3. collision, assembly (S = J M^-1 J^T and the rows' rates on the device), QP
-        dt_guess = min(cap, 2.0 * st.dt_prev)
         m = n_active = 0
         system = sol = None
         if self._colliders:
@@ -529,35 +743,67 @@ class EolBody(Body):
             if m:
                 system, order = self._read_system(m)
             t = self._tick("assembly", t)
-        if m:
+        if m:  # the unconstrained w, a, kept for a re-solve at a shorter dt
+            wp.copy(self._w_hat, self._w)
+            wp.copy(self._a_hat, self._a)
             # warm start from the rows active last step (a resting body: one or two iterations)
             guess = np.isin(system.ids, st.active_rows)
-            sol = solve_contact(system, dt_guess, active=guess if guess.any() else None)
-            st.active_rows = system.ids[sol.active]
-            lam = np.empty((m, 2))
-            lam[order] = np.column_stack([sol.lam0, sol.lam1])  # back to the device's row order
-            # w, a become w_0, w_1 in place (both are recomputed from the state every step)
-            wp.launch(kc.apply_impulses, dim=m, device=d,
-                      inputs=[self._surface, self._row_packed, self._row_ids, self._mass,
-                              wp.array(lam, dtype=wp.float64, device=d), self._w, self._a])
-            n_active = int(sol.active.sum())
-            t = self._tick("qp", t)
-        # 4. least-squares split of both parts (Eqs. 23-25, 32) and the step size (Eq. 33)
-        w0, w1 = self._w, self._a
-        (L0, c0), (L1, c1) = self._split(w0, w1)
-        self._vmax.zero_()
-        wp.launch(ks.eulerian_residual, dim=self._chunks, device=d,
-                  inputs=[w0, w1, self._mass, self._grid, _mat(L0), wp.vec3d(*c0), _mat(L1),
-                          wp.vec3d(*c1), _mat(np.linalg.inv(self._F_L())), self._chunks, self._v0, self._v1, self._vmax])
-        vmax = self._vmax.numpy()
-        if not np.all(np.isfinite(vmax)) or not np.all(np.isfinite(L0 + L1)):
-            self._failure = ("Eulerian velocity", f"non-finite at step {st.steps} (t = {st.time:.6g} s)", "non-finite")
-            return
-        h = self.grid.h
-        dt = adaptive_dt(vmax[:3], vmax[3:], h, self.cfl, cap)
-        if dt < 1e-9 * cap and dt < 1e-12:
-            self._failure = ("time step", f"dt = {dt:.3g} s collapsed at step {st.steps}", "diverging")
-            return
+            guess = guess if guess.any() else None
+        # The QP is solved at dt_guess and split on its final active set as lambda_0 + dt lambda_1
+        # (Eq. 31). Extrapolated to a dt far from dt_guess that split is no QP solution: multipliers
+        # turn negative (the collider pulls the body in) and rows inactive at dt_guess are violated,
+        # which on landing flat faces pumped Eulerian velocity until dt collapsed (issue 16). So in
+        # contact dt never exceeds dt_guess, and when Eq. (33) asks for less the QP is solved again there.
+        for attempt in range(4):
+            if m:
+                if attempt:  # back to the unconstrained w, a
+                    wp.copy(self._w, self._w_hat)
+                    wp.copy(self._a, self._a_hat)
+                sol = solve_contact(system, dt_guess, active=guess)
+                st.active_rows = system.ids[sol.active]
+                lam = np.empty((m, 2))
+                lam[order] = np.column_stack([sol.lam0, sol.lam1])  # back to the device's row order
+                # w, a become w_0, w_1 in place (both are recomputed from the state every step)
+                wp.launch(kc.apply_impulses, dim=m, device=d,
+                          inputs=[self._surface, self._row_packed, self._row_ids, self._mass,
+                                  wp.array(lam, dtype=wp.float64, device=d), self._w, self._a])
+                n_active = int(sol.active.sum())
+                t = self._tick("qp", t)
+            # 4. least-squares split of both parts (Eqs. 23-25, 32) and the step size (Eq. 33)
+            w0, w1 = self._w, self._a
+            (L0, c0), (L1, c1) = self._split(w0, w1)
+            self._vmax.zero_()
+            # material within half a cell of the grid's boundary (tracked at the end of the last step):
+            # the grid can no longer hold it (it flies apart, or deforms beyond the padding)
+            for slot, y in ((6, self.state.y_vertices), (7, self.state.y_points)):
+                wp.launch(kl.outside_margin, dim=y.shape[0], device=d, inputs=[y, self._grid, wp.float64(0.5), self._vmax, slot])
+            wp.launch(ks.eulerian_residual, dim=self._chunks, device=d,
+                      inputs=[w0, w1, self._mass, self._grid, _mat(L0), wp.vec3d(*c0), _mat(L1),
+                              wp.vec3d(*c1), _mat(np.linalg.inv(self._F_L())), self._chunks, self._v0, self._v1, self._vmax])
+            vmax = self._vmax.numpy()
+            if vmax[6] > 0.0 or vmax[7] > 0.0:
+                what = "surface vertices" if vmax[6] > 0.0 else "material points"
+                self._failure = ("material outside the grid",
+                                 (f"material left the grid: {what} came within half a cell of the grid boundary "
+                                  f"({max(vmax[6], vmax[7]):.3g} cells past that margin) at step {st.steps} "
+                                  f"(t = {st.time:.6g} s); the body flies apart or deforms beyond padding = "
+                                  f"{self.padding} cells"), "diverging")
+                return
+            vmax = vmax[:6]
+            if not np.all(np.isfinite(vmax)) or not np.all(np.isfinite(L0 + L1)):
+                self._failure = ("Eulerian velocity", f"non-finite at step {st.steps} (t = {st.time:.6g} s)", "non-finite")
+                return
+            h = self.grid.h
+            dt = adaptive_dt(vmax[:3], vmax[3:], h, self.cfl, cap)
+            if dt < 1e-9 * cap and dt < 1e-12:
+                self._failure = ("time step", f"dt = {dt:.3g} s collapsed at step {st.steps}", "diverging")
+                return
+            if sol is None:
+                break
+            if dt >= dt_guess * (1.0 - 1e-9) or attempt == 3:
+                dt = min(dt, dt_guess)
+                break
+            dt_guess, guess = dt, sol.active
         wp.launch(ks.combine, dim=n, device=d, inputs=[self._v0, self._v1, wp.float64(dt), self._vstar])
         L_new, c_new = L0 + dt * L1, c0 + dt * c1
         if sol is not None:  # momentum the QP delivered: sum_s m_s (w_s - w_hat_s) = -J^T lambda
@@ -581,6 +827,8 @@ class EolBody(Body):
         self._force_pass()
         self._tick("forces", t)
         st.gravity_impulse = st.gravity_impulse + dt * self._m_total * self._gravity
+        if self._accelerations or self._tractions or self._point_forces:
+            st.load_impulse = st.load_impulse + dt * (self._m_total * self._body_acc + self._load_force)
         self.history.append(StepRecord(time=st.time, dt=dt, rows=m, active=n_active,
                                        v_star=float(max(vmax[:3].max(), 0.0) + dt * vmax[3:].max()),
                                        overlap=0.0 if system is None else float(system.overlap.sum()),

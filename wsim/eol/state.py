@@ -33,7 +33,8 @@ class EolState:
         dt_prev: the last step's dt [s] (the next dt guess of the contact QP).
         time: the body's time [s].  steps: steps taken.
         active_rows: ids of the contact rows active in the last QP (its warm start; variable length).
-        contact_impulse, gravity_impulse: (3,) momentum delivered by contact and by gravity so far [kg m/s].
+        contact_impulse, gravity_impulse, load_impulse: (3,) momentum delivered by contact, by gravity and
+            by the loads (``add_traction``, ``add_body_force``) so far [kg m/s].
         failure: utf-8 bytes of "quantity\\x1fdetail\\x1freason" once a step failed (empty: none).
     """
 
@@ -55,6 +56,7 @@ class EolState:
     active_rows: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     contact_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
     gravity_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    load_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
     failure: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.uint8))
 
     def get_failure(self) -> tuple[str, str, str] | None:
