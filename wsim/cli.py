@@ -57,6 +57,9 @@ def _run(build: Callable[..., object], frames_default: int, name: str, args: arg
             print(f"wsim: scene '{name}': build() must return a wsim.World, got {type(world).__name__}", file=sys.stderr)
             return 2
         frames = args.frames if args.frames is not None else frames_default
+        if args.checkpoint_every < 0:
+            print(f"wsim: --checkpoint-every = {args.checkpoint_every} must be >= 0", file=sys.stderr)
+            return 2
         checkpoint = args.checkpoint
         if checkpoint is None and args.checkpoint_every:
             checkpoint = f"{Path(out).with_suffix('')}.ckpt.h5"

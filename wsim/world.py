@@ -182,6 +182,8 @@ class World:
         """
         frames = positive_int(frames, "World.run: frames")
         every = positive_int(checkpoint_every, "World.run: checkpoint_every", 0)
+        if every and checkpoint is None:
+            raise InvalidParameter("World.run: checkpoint_every needs checkpoint= (the file to save to)")
         writer = UsdWriter(out, self.fps, up_axis or self.up_axis, self.up_axis) if out is not None else None
         if checkpoint is not None:
             from wsim import checkpoint as ckpt

@@ -286,9 +286,9 @@ class BemBody(Body):
             elif value.shape == (n, 3):
                 p += value
             else:
+                expected = f"({n_vertices}, 3)" + ("" if n == n_vertices else f" per vertex or ({n}, 3) per node")
                 raise InvalidParameter(
-                    f"body '{self.name}': a traction load returned shape {value.shape}; expected ({n_vertices}, 3) "
-                    f"per vertex or ({n}, 3) per node")
+                    f"body '{self.name}': a traction load returned shape {value.shape} at t = {t:g} s; expected {expected}")
             if not np.all(np.isfinite(value)):
                 raise InvalidParameter(f"body '{self.name}': a traction load returned non-finite values at t = {t:g} s")
         return p.reshape(-1)
