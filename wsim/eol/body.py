@@ -380,10 +380,11 @@ class EolBody(Body):
         (world) or, by default, the nodes' current centre of mass. The lumped node masses are the
         ones the step conserves momentum with (split, QP, contact impulse); their second moment
         exceeds the continuum's by O(h^2) (mass spread to the corners of a cell, the ``mass_floor``):
-        +11 % for a sphere at 8 cells across, +5 % at 16 (``tools/study_eol_fidelity.py``)."""
+        +11.0 % for a sphere at 8 cells across, +3.2 % at 12, +1.3 % at 16
+        (``tools/study_eol_fidelity.py``)."""
         m = self.node_masses()
         x = self.node_world_positions()
-        p = (m @ x) / m.sum() if about is None else np.asarray(about, dtype=np.float64).reshape(3)
+        p = (m @ x) / m.sum() if about is None else as_vec3(about, f"body '{self.name}': about")
         return (m[:, None] * np.cross(x - p, self.node_world_velocities())).sum(axis=0)
 
     def kinetic_energy(self) -> float:
