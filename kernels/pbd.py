@@ -279,11 +279,6 @@ def restore_angular_momentum(
     v[i] = v[i] + wp.vec3(wp.cross(dw, r))
 
 
-@wp.func
-def _edge_length(x_pred: wp.array(dtype=wp.vec3), dx: wp.array(dtype=wp.vec3), i: int, j: int) -> float:
-    return wp.length((x_pred[i] - x_pred[j]) + (dx[i] - dx[j]))
-
-
 @wp.kernel
 def solve_distance(
     x_pred: wp.array(dtype=wp.vec3),

@@ -232,7 +232,7 @@ def test_contact_rows_match_a_host_assembly(device, block):
     ball.apply_transform(trimesh.transformations.rotation_matrix(0.7, [3, -1, 2], point=(0.0, 0.5, 0.0)))
     b = EolBody(ball, SOFT, resolution=8, rotation=rot, collision_block=block)
     b.bind(wp.get_device(device), np.zeros(3), np.array([0.0, 1.0, 0.0]))
-    b.attach_colliders([plane, box])
+    b.attach_colliders(wsim.colliders.Surfaces([plane, box], np.array([0.0, 1.0, 0.0])))
     rows = b.contact_rows()
     # the reference, sample by sample
     F, T = b.frame

@@ -442,20 +442,11 @@ class EolBody(Body):
 
     def vertex_areas(self) -> np.ndarray:
         """(V,) lumped areas of the deformed surface: a third of each incident triangle's area [m^2]."""
-        x = self.points()
-        f = self._faces
-        a = 0.5 * np.linalg.norm(np.cross(x[f[:, 1]] - x[f[:, 0]], x[f[:, 2]] - x[f[:, 0]]), axis=1)
-        return np.bincount(f.ravel(), weights=np.repeat(a / 3.0, 3), minlength=len(x))
+        return wmesh.vertex_areas(self.points(), self._faces)
 
     def vertex_normals(self) -> np.ndarray:
         """(V, 3) outward unit normals of the deformed surface (area-weighted, world axes)."""
-        x = self.points()
-        f = self._faces
-        fn = np.cross(x[f[:, 1]] - x[f[:, 0]], x[f[:, 2]] - x[f[:, 0]])
-        n = np.zeros_like(x)
-        for k in range(3):
-            np.add.at(n, f[:, k], fn)
-        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+        return wmesh.vertex_normals(self.points(), self._faces)
 
     def _load_value(self, value: Any, shape: tuple[int, ...], what: str, t: float) -> np.ndarray:
         try:
@@ -624,9 +615,7 @@ class EolBody(Body):
         else:
             st.Adot, st.Tdot = np.array(L0), np.array(c0)
 
-    def attach_colliders(self, surfaces: Surfaces | Sequence[Collider]) -> None:
-        if not isinstance(surfaces, Surfaces):  # a bare list (tests drive a body without a World)
-            surfaces = Surfaces(surfaces, self._up)
+    def attach_colliders(self, surfaces: Surfaces) -> None:
         self._surfaces = surfaces
         self._colliders = list(surfaces)
         if self._colliders:  # contact samples and row accumulators, only for a scene with colliders
@@ -773,11 +762,16 @@ class EolBody(Body):
             # 4. least-squares split of both parts (Eqs. 23-25, 32) and the step size (Eq. 33)
             w0, w1 = self._w, self._a
             (L0, c0), (L1, c1) = self._split(w0, w1)
-            self._vmax.zero_()
-            # material within half a cell of the grid's boundary (tracked at the end of the last step):
-            # the grid can no longer hold it (it flies apart, or deforms beyond the padding)
-            for slot, y in ((6, self.state.y_vertices), (7, self.state.y_points)):
-                wp.launch(kl.outside_margin, dim=y.shape[0], device=d, inputs=[y, self._grid, wp.float64(0.5), self._vmax, slot])
+            if attempt == 0:
+                self._vmax.zero_()
+                # material within half a cell of the grid's boundary (tracked at the end of the last
+                # step): the grid can no longer hold it (it flies apart, or deforms beyond the padding).
+                # Read back with the velocity maxima; a QP re-solve does not change it.
+                for slot, y in ((6, self.state.y_vertices), (7, self.state.y_points)):
+                    wp.launch(kl.outside_margin, dim=y.shape[0], device=d,
+                              inputs=[y, self._grid, wp.float64(0.5), self._vmax, slot])
+            else:
+                self._vmax[:6].zero_()
             wp.launch(ks.eulerian_residual, dim=self._chunks, device=d,
                       inputs=[w0, w1, self._mass, self._grid, _mat(L0), wp.vec3d(*c0), _mat(L1),
                               wp.vec3d(*c1), _mat(np.linalg.inv(self._F_L())), self._chunks, self._v0, self._v1, self._vmax])
