@@ -19,27 +19,31 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+import warnings
+from dataclasses import dataclass, field
+from typing import ClassVar
 from typing import Any, Callable, Sequence
 
 import numpy as np
 import warp as wp
 
 from wsim import mesh as wmesh
+from wsim import constraints as wc
 from wsim.bem import stepper
+from wsim.bem.constraints import PointResponse, add_point_displacement, frame_terms, response_matrix
 from wsim.rigid import RigidFrame
 from wsim.bem.mass import mass_properties
 from wsim.bem.operators import PRECISIONS, BemOperators, build_operators
 from wsim.bem.surface import prepare_surface
 from wsim.body import Body
 from wsim.cache import OperatorCache
-from wsim.colliders import Collider
+from wsim.colliders import Surfaces
 from wsim.errors import InvalidParameter, SimulationDiverged
 from wsim.materials import ElasticMaterial
-from wsim.validate import as_rotation, as_vec3, finite_number
+from wsim.validate import as_rotation, as_vec3, finite_number, positive_int
 
 TractionFn = Callable[[float], Any]
-STAGES = ("history", "loads", "solve", "correction", "frame")
+STAGES = ("history", "loads", "solve", "collision", "constraints", "correction", "frame")
 
 
 @dataclass
@@ -56,7 +60,13 @@ class BemState:
         steps: steps taken.
         last_loaded: last step with a nonzero traction (for the growth check).
         window_peak, window_previous, window_growing: the growth check's running window.
+        contact_impulse, fixed_impulse: (3,) world impulses of the contact and of the fixed and
+            driven points so far [N s].
+        point_nodes, point_forces: the nodes and world forces [N] of the last constraint solve (its
+            warm start).
     """
+
+    _ragged: ClassVar[tuple[str, ...]] = ("point_nodes", "point_forces")
 
     U: wp.array
     P: wp.array
@@ -69,6 +79,10 @@ class BemState:
     window_peak: float = 0.0
     window_previous: float = 0.0
     window_growing: int = 0
+    contact_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    fixed_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    point_nodes: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    point_forces: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 class BemBody(Body):
@@ -103,6 +117,15 @@ class BemBody(Body):
         cache: operator cache (True, False or an ``OperatorCache``).
         progress: progress bar while the operators are built.
         profile: synchronize the device after each stage so ``timings`` splits GPU time by stage.
+        constraint_tol: the constraint solve stops when a Gauss-Seidel sweep moves no point by more
+            than this [m] (default 1e-5 of the body's largest radius ``r_max``).
+        constraint_iterations: the most sweeps per step; a step that ends above the tolerance is
+            recorded in ``constraint_history`` and counted in ``unconverged_steps``, and the first
+            one warns.
+        contact_margin: points of the unconstrained step closer than this to a collider [m] join the
+            contact solve (default 2 % of ``r_max``); the rest are free this step.
+        friction: the body's Coulomb coefficient; a contact uses the larger of it and the collider's
+            (the BEM authors' "maximum" rule). None: the collider's.
         **quadrature: quadrature knobs of ``build_operators``.
     """
 
@@ -131,6 +154,10 @@ class BemBody(Body):
         cache: bool | OperatorCache = True,
         progress: bool = False,
         profile: bool = False,
+        constraint_tol: float | None = None,
+        constraint_iterations: int = 200,
+        contact_margin: float | None = None,
+        friction: float | None = None,
         **quadrature: Any,
     ) -> None:
         super().__init__(name, velocity, angular_velocity)
@@ -185,6 +212,21 @@ class BemBody(Body):
         # vertex <- mean of its nodes' displacements (double nodes share a vertex)
         self._node_count = np.bincount(surface.vertex, minlength=len(vertices)).astype(np.float64)
         self.timings: dict[str, float] = {k: 0.0 for k in STAGES}
+        self.constraint_tol = None if constraint_tol is None else finite_number(constraint_tol, f"body '{name}': constraint_tol [m]")
+        self.contact_margin = None if contact_margin is None else finite_number(contact_margin, f"body '{name}': contact_margin [m]")
+        for what, v in (("constraint_tol", self.constraint_tol), ("contact_margin", self.contact_margin)):
+            if v is not None and v <= 0.0:
+                raise InvalidParameter(f"body '{name}': {what} = {v} m must be > 0")
+        self.friction = None if friction is None else finite_number(friction, f"body '{name}': friction")
+        if self.friction is not None and self.friction < 0.0:
+            raise InvalidParameter(f"body '{name}': friction = {friction} must be >= 0")
+        self.constraint_iterations = positive_int(constraint_iterations, f"body '{name}': constraint_iterations")
+        self._fixed: dict[int, tuple[np.ndarray, np.ndarray, Any]] = {}  # handle -> (vertex ids, nodes, target)
+        self._next_handle = 0
+        self._surfaces: Surfaces | None = None
+        self._response: PointResponse | None = None
+        self.constraint_history: list[wc.SolveRecord] = []  # diagnostics of every constrained step (not state)
+        self.unconverged_steps = 0
 
     # -- public read-outs -------------------------------------------------------------------
     @property
@@ -355,12 +397,210 @@ class BemBody(Body):
         f.omega = np.zeros(3)
         f.L = np.zeros(3)
 
-    def attach_colliders(self, colliders: Sequence[Collider]) -> None:
-        # Contact for BEM bodies is a later issue: refuse rather than silently ignore colliders.
-        if colliders:
-            raise InvalidParameter(
-                f"body '{self.name}': BEM bodies do not collide yet; remove the World's colliders "
-                f"({', '.join(c.name for c in colliders)}) or use another body type")
+    def attach_colliders(self, surfaces: Surfaces) -> None:
+        self._surfaces = surfaces if len(surfaces) else None
+
+    # -- constraints -----------------------------------------------------------------------------
+    @property
+    def contact_impulse(self) -> np.ndarray:
+        """World impulse the colliders have applied so far [N s] (normal and friction)."""
+        self._require_bound()
+        return self.state.contact_impulse.copy()
+
+    @property
+    def fixed_impulse(self) -> np.ndarray:
+        """World impulse the fixed and driven points have applied so far [N s]."""
+        self._require_bound()
+        return self.state.fixed_impulse.copy()
+
+    def fix(self, vertex_ids: Any, target: Any = None) -> int:
+        """Hold mesh vertices at world positions from the next step on; returns a handle for ``release``.
+
+        Args:
+            vertex_ids: indices of mesh vertices (every double-node copy of a vertex is held).
+            target: None (where the vertices are now), a (k, 3) array of world positions [m], or a
+                callable ``fn(t) -> (k, 3)`` evaluated at each step's end time (driven points).
+        """
+        p = f"body '{self.name}'"
+        if self.state is None:
+            raise InvalidParameter(f"{p}: fix() needs the body in a World (world.add(body) first): its targets are "
+                                   "world positions at the World's time")
+        n_vertices = len(self._node_count)
+        ids = np.asarray(vertex_ids)
+        if ids.ndim != 1 or ids.size == 0 or not np.issubdtype(ids.dtype, np.integer):
+            raise InvalidParameter(f"{p}: fix() takes a non-empty 1-D list of integer vertex ids, got shape {ids.shape} "
+                                   f"of {ids.dtype}")
+        bad = ids[(ids < 0) | (ids >= n_vertices)]
+        if bad.size:
+            raise InvalidParameter(f"{p}: vertex id {int(bad[0])} is out of range [0, {n_vertices - 1}]")
+        if len(np.unique(ids)) != len(ids):
+            raise InvalidParameter(f"{p}: fix() got a vertex id twice")
+        if target is None:
+            target = self.points()[ids]
+        elif not callable(target):
+            target = self._check_targets(target, len(ids), self.time)
+        slot = np.full(n_vertices, -1)
+        slot[ids] = np.arange(len(ids))
+        nodes = np.flatnonzero(slot[self._surface.vertex] >= 0)
+        handle = self._next_handle
+        self._next_handle += 1
+        self._fixed[handle] = (ids, nodes, target, slot[self._surface.vertex[nodes]])
+        return handle
+
+    def release(self, handle: int) -> None:
+        """Stop holding the vertices of a ``fix`` handle."""
+        if handle not in self._fixed:
+            raise InvalidParameter(f"body '{self.name}': no fixed points with handle {handle!r}")
+        del self._fixed[handle]
+
+    def _with_point_forces(self, nodes: np.ndarray, forces: np.ndarray, u: np.ndarray, a_ext: np.ndarray,
+                           alpha_ext: np.ndarray, R1: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """u, a_ext, alpha_ext with world point forces [N] on ``nodes`` added as tractions (frame axes
+        of the step start, R1), and the (3N,) tractions themselves."""
+        so = self._so
+        ops = so.operators
+        p_nodes = (forces @ R1) / self._response.area[nodes][:, None]
+        u = add_point_displacement(so, nodes, p_nodes, u)
+        p_c = np.zeros((ops.n_nodes, 3))
+        np.add.at(p_c, nodes, p_nodes)
+        p_c = p_c.reshape(-1)
+        return u, a_ext + ops.A @ p_c, alpha_ext + ops.C @ p_c, p_c
+
+    def _check_targets(self, value: Any, k: int, t: float) -> np.ndarray:
+        a = np.asarray(value, dtype=np.float64)
+        if a.shape != (k, 3):
+            raise InvalidParameter(f"body '{self.name}': fixed-point targets at t = {t:g} s have shape {a.shape}; "
+                                   f"expected ({k}, 3) world positions")
+        if not np.all(np.isfinite(a)):
+            raise InvalidParameter(f"body '{self.name}': fixed-point targets at t = {t:g} s are not finite")
+        return a
+
+    def _constraint_points(self, V: np.ndarray, X_prev: np.ndarray, t: float) -> tuple[np.ndarray, wc.PointSet]:
+        """The nodes and constraints of this step: fixed and driven points, then contacts."""
+        points = wc.PointSet()
+        nodes = []
+        held = np.zeros(len(V), dtype=bool)
+        for ids, nd, target, row in self._fixed.values():
+            tgt = self._check_targets(target(t), len(ids), t) if callable(target) else target
+            points.add(wc.FIXED, np.zeros((len(nd), 3)), np.zeros(len(nd)), tgt[row], 0.0)
+            nodes.append(nd)
+            held[nd] = True
+        surfaces = self._surfaces
+        if surfaces is not None:
+            margin = self.contact_margin if self.contact_margin is not None else 0.02 * self._so.operators.r_max
+            for ci, col in enumerate(surfaces):
+                plane = surfaces.plane(ci)
+                if plane is not None:
+                    n, h = plane
+                    sel = np.flatnonzero((V @ n - h < margin) & ~held)
+                    normal, height, target = np.broadcast_to(n, (len(sel), 3)), np.full(len(sel), h), X_prev[sel]
+                else:
+                    sel, normal, height = self._mesh_points(ci, V, t, margin, held)
+                    G, g = surfaces.velocity(ci, t - self.dt, max(1e-6, 1e-3 * self.dt))
+                    target = X_prev[sel] + self.dt * (X_prev[sel] @ G.T + g)  # carried by the collider
+                if len(sel):
+                    mu = col.friction if self.friction is None else max(col.friction, self.friction)
+                    points.add(wc.CONTACT, normal, height, target, mu)
+                    nodes.append(sel)
+        return (np.concatenate(nodes) if nodes else np.zeros(0, dtype=np.int64)), points
+
+    def _mesh_points(self, ci: int, V: np.ndarray, t: float, margin: float,
+                     held: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        from wsim.kernels import bem_constraints as kb
+
+        d = self._device
+        M = self._surfaces.matrix(ci, t)
+        n = len(V)
+        normal = wp.zeros(n, dtype=wp.vec3d, device=d)
+        height = wp.zeros(n, dtype=wp.float64, device=d)
+        hit = wp.zeros(n, dtype=wp.int32, device=d)
+        wp.launch(kb.collider_points, dim=n, device=d,
+                  inputs=[self._surfaces[ci].device_mesh(d).id, wp.array(V, dtype=wp.vec3d, device=d),
+                          wp.mat44d(*np.linalg.inv(M).ravel()), wp.mat44d(*M.ravel()), float(margin), normal, height, hit])
+        sel = np.flatnonzero((hit.numpy() > 0) & ~held)
+        return sel, normal.numpy()[sel], height.numpy()[sel]
+
+    def _solve_constraints(self, u: np.ndarray, a_ext: np.ndarray, alpha_ext: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Forces at the held and contacting nodes that meet their constraints at the step's end
+        (Eq. 14, ``wsim.constraints``), applied as tractions: u, a_ext, alpha_ext of the constrained step."""
+        st, so = self.state, self._so
+        ops = so.operators
+        t0 = time.perf_counter()
+        t = (st.steps + 1) * self.dt
+        f = st.frame
+        pred = f.copy()
+        if self.frame_update:
+            pred.update(self.dt, self._gravity, a_ext, alpha_ext, self._inertia, self._inertia_inv, self.gyroscopic)
+        x = ops.surface.nodes - ops.com
+        u_pos = u  # the displacement the step ends with, before the point forces
+        if not self.frame_update:  # Eq. (9) with a = alpha = 0 (as _finish_step applies it)
+            u_pos = u + so.E @ np.concatenate([-(a_ext + f.R.T @ self._gravity), -alpha_ext])
+        lever = (x + u_pos.reshape(-1, 3)) @ pred.R.T
+        V = lever + pred.T
+        X_prev = (x + st.u.reshape(-1, 3)) @ f.R.T + f.T
+        nodes, points = self._constraint_points(V, X_prev, t)
+        t0 = self._tick("collision", t0)
+        if not len(points):
+            st.point_nodes, st.point_forces = np.zeros(0, dtype=np.int64), np.zeros((0, 3))
+            return u, a_ext, alpha_ext
+        if self._response is None:
+            self._response = PointResponse.build(so)
+        R1 = f.R
+        lin_a, lin_c = frame_terms(so, nodes, lever[nodes], f.R, self.dt, self.frame_update)
+        K = response_matrix(so, self._response, nodes, pred.R, R1, lin_a, lin_c)
+        # warm start: last step's force on the same node
+        f0 = np.zeros((len(nodes), 3))
+        if len(st.point_nodes):
+            last = dict(zip(st.point_nodes.tolist(), range(len(st.point_nodes))))
+            for k, nd in enumerate(nodes.tolist()):
+                j = last.get(nd)
+                if j is not None:
+                    f0[k] = st.point_forces[j]
+        tol = self.constraint_tol if self.constraint_tol is not None else 1e-5 * ops.r_max
+        # Eq. (14) is first order in the rotation increment; the true positions of the solved forces
+        # are computed and the solve repeated with the linear model shifted by the difference
+        # (a fixed-point iteration on the nonlinearity), until it is below tol (at most 3 passes)
+        V0 = V[nodes]
+        shift = np.zeros_like(V0)
+        sweeps_total = 0
+        for _ in range(3):
+            forces, V_lin, sweeps, residual = wc.solve_points(K, V0 + shift, points, f0, tol, self.constraint_iterations,
+                                                               self._device)
+            sweeps_total += sweeps
+            u_c, a_c, alpha_c, p_c = self._with_point_forces(nodes, forces, u, a_ext, alpha_ext, R1)
+            if not self.frame_update:
+                break
+            end = f.copy()
+            end.update(self.dt, self._gravity, a_c, alpha_c, self._inertia, self._inertia_inv, self.gyroscopic)
+            V_true = (x[nodes] + u_c.reshape(-1, 3)[nodes]) @ end.R.T + end.T
+            miss = V_true - V_lin
+            if np.abs(miss).max() <= tol:
+                break
+            shift = shift + miss
+            f0 = forces
+        converged = residual <= tol
+        contact = points.kind == wc.CONTACT
+        self.constraint_history.append(wc.SolveRecord(step=st.steps + 1, points=len(points), contacts=int(contact.sum()),
+                                                      sweeps=sweeps_total, residual=residual, converged=converged))
+        if not converged:
+            self.unconverged_steps += 1
+            if self.unconverged_steps == 1:
+                warnings.warn(f"body '{self.name}': the constraint solve at step {st.steps + 1} (t = {t:.6g} s) "
+                              f"stopped after {sweeps} sweeps at residual {residual:.3g} m > tol {tol:.3g} m "
+                              "(see body.constraint_history)", RuntimeWarning, stacklevel=3)
+        n3 = so.size
+        p_total = p_c if self._p_loads is None else self._p_loads + p_c
+        self._p_in.numpy()[:n3] = p_total
+        wp.copy(self._p, self._p_in, count=n3)
+        self._p_live = True
+        self._loaded_now = True
+        st.contact_impulse = st.contact_impulse + self.dt * forces[contact].sum(axis=0)
+        st.fixed_impulse = st.fixed_impulse + self.dt * forces[~contact].sum(axis=0)
+        st.point_nodes, st.point_forces = nodes.astype(np.int64), forces
+        u, a_ext, alpha_ext = u_c, a_c, alpha_c
+        self._tick("constraints", t0)
+        return u, a_ext, alpha_ext
 
     def advance(self, t0: float, t1: float) -> None:
         """Take steps of dt until the body's time is the nearest multiple of dt to t1."""
@@ -382,6 +622,14 @@ class BemBody(Body):
     def step(self) -> None:
         """One step of length dt (Eqs. 9-12, Sec. 3.2.1, Eq. 11)."""
         u, a_ext, alpha_ext = self.unconstrained_solve()
+        if self._fixed or self._surfaces is not None:
+            # On a constrained step the error correction moves u's rigid drift into the frame's pose
+            # (``Correction.drift``), not its acceleration: the paper's da, dalpha moved the points
+            # after the solve (a resting cube slid ~10 um per step) and held 2.5 % of its weight with
+            # a force no collider applied. So the constraints have the last word on the positions.
+            u, a_ext, alpha_ext = self._solve_constraints(u, a_ext, alpha_ext)
+            self._finish_step(u, a_ext, alpha_ext, time.perf_counter(), correct=False)
+            return
         self._finish_step(u, a_ext, alpha_ext, time.perf_counter())
 
     def unconstrained_solve(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -398,6 +646,7 @@ class BemBody(Body):
         t0 = self._tick("history", t0)
         p = self._tractions(t) if self._loads else None
         has_p = p is not None and bool(np.any(p))
+        self._p_loads = p if has_p else None
         ops = so.operators
         a_ext, alpha_ext = (ops.A @ p, ops.C @ p) if has_p else (np.zeros(3), np.zeros(3))
         if has_p:
@@ -416,16 +665,22 @@ class BemBody(Body):
         self._tick("solve", t0)
         return u, a_ext, alpha_ext
 
-    def _finish_step(self, u: np.ndarray, a_ext: np.ndarray, alpha_ext: np.ndarray, t0: float) -> None:
-        """Error correction, ring update and frame update of the step (the paper's ERRCR)."""
+    def _finish_step(self, u: np.ndarray, a_ext: np.ndarray, alpha_ext: np.ndarray, t0: float,
+                     correct: bool = True) -> None:
+        """Error correction, ring update and frame update of the step (the paper's ERRCR). With
+        ``correct`` False (a constrained step) the drift moves to the frame's pose instead of its
+        acceleration (``Correction.drift``)."""
         st = self.state
         so, f = self._so, st.frame
         n3 = so.size
         g_body = f.R.T @ self._gravity  # g' (Eq. 11a)
         if self.frame_update:
             da = dalpha = np.zeros(3)
-            if self.error_correction:
+            transfer = None
+            if self.error_correction and correct:
                 da, dalpha, u = so.correction.apply(u)
+            elif self.error_correction:  # a constrained step: the drift goes to the pose (see ``step``)
+                *transfer, u = so.correction.drift(u)
             b = np.concatenate([a_ext + da, alpha_ext + dalpha])  # [a - g', alpha]
         else:
             # a = alpha = 0 in Eq. (9): H_0 u = G_0 p - D_0 g' + h
@@ -440,6 +695,13 @@ class BemBody(Body):
         wp.copy(st.B, self._b_in, dest_offset=slot * 6, count=6)
         if self.frame_update:
             f.update(self.dt, self._gravity, b[:3], b[3:], self._inertia, self._inertia_inv, self.gyroscopic)
+            if transfer is not None:  # x + u = R_e (x + u'' - c0) + c0 + t: every point stays put
+                drift, R_e = transfer
+                c0 = so.correction.c0
+                # Only the pose: handing the drift's rate to the velocity as well (as the paper's da
+                # does) made the drift a support force, 23 % of a resting cube's weight.
+                f.T = f.T + f.R @ (c0 + drift - R_e @ c0)
+                f.R = f.R @ R_e
             if st.steps % 100 == 99:
                 f.reorthonormalize()
         st.u = u

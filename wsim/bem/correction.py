@@ -91,6 +91,18 @@ class Correction:
             P_Q_H0[:, c : c + _CHUNK] = P_Q @ np.asarray(H0[:, c : c + _CHUNK], dtype=np.float64)
         return cls(x=x, w=w, c0=(w @ x) / w.sum(), H0_T=H0_T, K_a=K_a, P_Q=P_Q, P_Q_H0=P_Q_H0, D0=D0, E=E)
 
+    def drift(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Steps 1, 3 and 4 alone: (t, R_e, u'') with x + u = R_e (x + u'' - c0) + c0 + t, so a
+        frame moved to R R_e, T + R (c0 + t) - R R_e c0 keeps every point where it is. Used on
+        constrained steps (``BemBody``), where the drift goes to the frame's pose, not its
+        acceleration: a held or resting body must not feel a correction force."""
+        n = self.x.shape[0]
+        u3 = u.reshape(n, 3)
+        t = (self.w @ u3) / self.w_sum
+        p = self.q + u3 - t
+        R_e = nearest_rotation(p.T @ self.wq)
+        return t, R_e, (p @ R_e + self.c0 - self.x).reshape(-1)
+
     def apply(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Steps 1-6 for the (3N,) displacement u: returns (da, dalpha, corrected u)."""
         n = self.x.shape[0]

@@ -1,0 +1,105 @@
+"""Warp kernels of the BEM constraint response (Sugimoto et al. 2022, Sec. 3.4, Eqs. 13-14).
+
+A world force f_j [N] at node j, held over the step, is the traction p_j = R_{k-1}^T f_j / a_j on
+the node (a_j = int_Gamma N_j dGamma, the node's share of the area, the same weights as A of
+Eq. 10, so the tractions' resultant is exactly f_j). With u_k = u* + W p (W = H_0^-1 G', Eq. 12)
+and the frame update of Eq. (11) linear in a = A p and alpha = C p, node i's world position
+V_i = R_k (x_i + u_i) + T_k (Eq. 13) is, to first order in p,
+
+    V_i = V*_i + sum_j K_ij f_j,
+    K_ij = R*_k W_ij R_{k-1}^T / a_j + (dt^2 / m) I - dt^2 [r_i]x R_{k-1} (C_j / a_j) R_{k-1}^T,
+
+with r_i = R*_k (x_i + u*_i) (starred: the unconstrained step). The last term is Eq. (14)'s
+rotation increment dt dw x (x + u) with dw = dt R_{k-1} C p: dw is a world vector, so the lever arm
+is taken in world axes, R*_k (x + u). The paper prints dt dw x (x + u) in frame axes, which is the
+same only while the frame has not turned.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import warp as wp
+
+
+@wp.kernel
+def response_blocks(
+    W: wp.array2d(dtype=Any),
+    nodes: wp.array(dtype=int),
+    Rk: wp.mat33d,
+    R1: wp.mat33d,
+    inv_area: wp.array(dtype=wp.float64),
+    C_over_a: wp.array(dtype=wp.mat33d),
+    lin_a: wp.array(dtype=wp.mat33d),
+    lin_c: wp.array(dtype=wp.mat33d),
+    inv_mass: wp.float64,
+    K: wp.array2d(dtype=wp.float64),
+):
+    """Block K_ij = R*_k W_ij R_{k-1}^T / a_j + lin_a_i / m + lin_c_i R_{k-1} (C_j / a_j) R_{k-1}^T of
+    the points ``nodes``; launch with dim = (m, m). With the frame update, lin_a_i = dt^2 I and
+    lin_c_i = -dt^2 [r_i]x (module docstring); without it (a fixed frame, Eq. 9 with a = alpha = 0)
+    they remove the D_0 A + Q_0 C part of G': lin_a_i = -R E_D,i R^T, lin_c_i = -R E_Q,i R^T with
+    E = [H_0^-1 D_0, H_0^-1 Q_0]."""
+    i, j = wp.tid()
+    a = 3 * nodes[i]
+    nj = nodes[j]
+    b = 3 * nj
+    Wij = wp.mat33d(
+        wp.float64(W[a, b]), wp.float64(W[a, b + 1]), wp.float64(W[a, b + 2]),
+        wp.float64(W[a + 1, b]), wp.float64(W[a + 1, b + 1]), wp.float64(W[a + 1, b + 2]),
+        wp.float64(W[a + 2, b]), wp.float64(W[a + 2, b + 1]), wp.float64(W[a + 2, b + 2]))
+    blk = (Rk * Wij * wp.transpose(R1)) * inv_area[nj] + lin_a[i] * inv_mass \
+        + lin_c[i] * (R1 * C_over_a[nj] * wp.transpose(R1))
+    for p in range(3):
+        for q in range(3):
+            K[3 * i + p, 3 * j + q] = blk[p, q]
+
+
+@wp.kernel
+def add_columns(
+    W: wp.array2d(dtype=Any),
+    nodes: wp.array(dtype=int),
+    p: wp.array(dtype=wp.vec3d),
+    u: wp.array(dtype=wp.float64),
+):
+    """u += W[:, columns of nodes] p: the displacement of the point tractions p (frame axes)."""
+    r = wp.tid()
+    s = wp.float64(0.0)
+    for j in range(nodes.shape[0]):
+        c = 3 * nodes[j]
+        pj = p[j]
+        s += wp.float64(W[r, c]) * pj[0] + wp.float64(W[r, c + 1]) * pj[1] + wp.float64(W[r, c + 2]) * pj[2]
+    u[r] = u[r] + s
+
+
+@wp.kernel
+def collider_points(
+    mesh: wp.uint64,
+    V: wp.array(dtype=wp.vec3d),
+    to_local: wp.mat44d,
+    to_world: wp.mat44d,
+    margin: float,
+    normal: wp.array(dtype=wp.vec3d),
+    height: wp.array(dtype=wp.float64),
+    hit: wp.array(dtype=int),
+):
+    """For each point, the tangent plane n . x >= height of the nearest point of a closed collider
+    mesh (outward face normal n, world axes) when the point is inside the mesh or within
+    ``margin`` of it; hit = 1 there. A rigid pose: ``to_world`` is the collider's local-to-world
+    matrix, ``to_local`` its inverse."""
+    i = wp.tid()
+    x = V[i]
+    pl = to_local * wp.vec4d(x[0], x[1], x[2], wp.float64(1.0))
+    p = wp.vec3(float(pl[0]), float(pl[1]), float(pl[2]))
+    q = wp.mesh_query_point_sign_normal(mesh, p, margin)
+    hit[i] = 0
+    if q.result:
+        cl = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+        nl = wp.mesh_eval_face_normal(mesh, q.face)
+        cw = to_world * wp.vec4d(wp.float64(cl[0]), wp.float64(cl[1]), wp.float64(cl[2]), wp.float64(1.0))
+        nw = to_world * wp.vec4d(wp.float64(nl[0]), wp.float64(nl[1]), wp.float64(nl[2]), wp.float64(0.0))
+        n = wp.normalize(wp.vec3d(nw[0], nw[1], nw[2]))
+        c = wp.vec3d(cw[0], cw[1], cw[2])
+        normal[i] = n
+        height[i] = wp.dot(n, c)
+        hit[i] = 1

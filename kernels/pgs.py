@@ -1,0 +1,152 @@
+"""Projected Gauss-Seidel over point constraints with a dense linear response (Warp).
+
+A constraint solve sees m points. Point i's world position at the end of the step is affine in
+the world forces f_j [N] applied at the points over the step:
+
+    V_i(f) = V0_i + sum_j K_ij f_j        (K_ij: 3 x 3 blocks of the (3m, 3m) response K [m/N])
+
+(for a BEM body, Eq. 14 of Sugimoto et al. 2022 with the tractions of the forces; see
+``wsim.bem.constraints``). Each point carries one constraint kind:
+
+* ``FIXED``: V_i = target_i (bilateral, 3 rows);
+* ``CONTACT``: a half-space n_i . V_i >= height_i with Coulomb friction mu_i: the normal force
+  f_n = n_i . f_i >= 0 is complementary to the gap, and the tangential force opposes the slip
+  s_i = P_t (V_i - target_i) (target_i: where the point would be if it moved with the collider's
+  material, i.e. its position at the step start carried by the collider) inside |f_t| <= mu f_n.
+
+One sweep visits the points in order and, with B = K_ii and V_i recomputed from the current f
+(Gauss-Seidel), updates point i's force: FIXED solves B df = target - V; CONTACT first takes the
+normal row, f_n <- max(0, f_n - gap / (n.B n)), then, with V moved by that change, the tangential
+2 x 2 block, f_t <- f_t - (T B T^T)^-1 T (V - target), projected onto the disc |f_t| <= mu f_n
+(the staggered normal / friction projections of Kaufman et al. 2008 used by the paper). The sweep
+residual is max_i |B df_i| [m], the largest position change the sweep made; the solve stops when
+it falls below ``tol`` or after ``max_iter`` sweeps. K is not symmetric (H_0 and G_0 are not),
+so convergence is not guaranteed: the caller records the iterations and the residual.
+
+The kernel runs on one thread (the points are coupled by the dense K, so a sweep is sequential);
+m is the number of points near a collider or held, not the body's vertex count.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+CONTACT = wp.constant(0)
+FIXED = wp.constant(1)
+
+
+@wp.func
+def response_times(K: wp.array2d(dtype=wp.float64), f: wp.array(dtype=wp.vec3d), i: int) -> wp.vec3d:
+    """sum_j K_ij f_j (rows 3i..3i+2 of K times the stacked forces)."""
+    x = wp.float64(0.0)
+    y = wp.float64(0.0)
+    z = wp.float64(0.0)
+    for j in range(f.shape[0]):
+        fj = f[j]
+        c = 3 * j
+        x += K[3 * i, c] * fj[0] + K[3 * i, c + 1] * fj[1] + K[3 * i, c + 2] * fj[2]
+        y += K[3 * i + 1, c] * fj[0] + K[3 * i + 1, c + 1] * fj[1] + K[3 * i + 1, c + 2] * fj[2]
+        z += K[3 * i + 2, c] * fj[0] + K[3 * i + 2, c + 1] * fj[1] + K[3 * i + 2, c + 2] * fj[2]
+    return wp.vec3d(x, y, z)
+
+
+@wp.func
+def diagonal_block(K: wp.array2d(dtype=wp.float64), i: int) -> wp.mat33d:
+    r = 3 * i
+    return wp.mat33d(K[r, r], K[r, r + 1], K[r, r + 2],
+                     K[r + 1, r], K[r + 1, r + 1], K[r + 1, r + 2],
+                     K[r + 2, r], K[r + 2, r + 1], K[r + 2, r + 2])
+
+
+@wp.func
+def tangent_basis(n: wp.vec3d) -> wp.mat33d:
+    """Rows t1, t2, n: an orthonormal basis with n last."""
+    a = wp.vec3d(wp.float64(1.0), wp.float64(0.0), wp.float64(0.0))
+    if wp.abs(n[0]) > wp.float64(0.6):
+        a = wp.vec3d(wp.float64(0.0), wp.float64(1.0), wp.float64(0.0))
+    t1 = wp.normalize(wp.cross(n, a))
+    t2 = wp.cross(n, t1)
+    return wp.mat33d(t1[0], t1[1], t1[2], t2[0], t2[1], t2[2], n[0], n[1], n[2])
+
+
+@wp.func
+def contact_update(B: wp.mat33d, V: wp.vec3d, f: wp.vec3d, n: wp.vec3d, height: wp.float64,
+                   target: wp.vec3d, mu: wp.float64) -> wp.vec3d:
+    """The new force of a CONTACT point (module docstring): normal row, then the friction disc."""
+    zero = wp.float64(0.0)
+    fn_old = wp.dot(n, f)
+    gap = wp.dot(n, V) - height
+    bn = wp.dot(n, B * n)
+    fn_new = fn_old
+    if bn > zero:
+        fn_new = wp.max(fn_old - gap / bn, zero)
+    f_t = f - fn_old * n
+    V = V + B * ((fn_new - fn_old) * n)
+    if mu <= zero or fn_new <= zero:
+        return fn_new * n
+    T = tangent_basis(n)
+    t1 = wp.vec3d(T[0, 0], T[0, 1], T[0, 2])
+    t2 = wp.vec3d(T[1, 0], T[1, 1], T[1, 2])
+    s = V - target
+    s1 = wp.dot(t1, s)
+    s2 = wp.dot(t2, s)
+    b11 = wp.dot(t1, B * t1)
+    b12 = wp.dot(t1, B * t2)
+    b21 = wp.dot(t2, B * t1)
+    b22 = wp.dot(t2, B * t2)
+    det = b11 * b22 - b12 * b21
+    g1 = wp.dot(t1, f_t)
+    g2 = wp.dot(t2, f_t)
+    if det > zero:
+        g1 = g1 - (b22 * s1 - b12 * s2) / det
+        g2 = g2 - (b11 * s2 - b21 * s1) / det
+    limit = mu * fn_new
+    mag = wp.sqrt(g1 * g1 + g2 * g2)
+    if mag > limit:
+        g1 = g1 * (limit / mag)
+        g2 = g2 * (limit / mag)
+    return fn_new * n + g1 * t1 + g2 * t2
+
+
+@wp.kernel
+def pgs_points(
+    K: wp.array2d(dtype=wp.float64),
+    V0: wp.array(dtype=wp.vec3d),
+    kind: wp.array(dtype=int),
+    normal: wp.array(dtype=wp.vec3d),
+    height: wp.array(dtype=wp.float64),
+    target: wp.array(dtype=wp.vec3d),
+    mu: wp.array(dtype=wp.float64),
+    max_iter: int,
+    tol: wp.float64,
+    f: wp.array(dtype=wp.vec3d),
+    stats: wp.array(dtype=wp.float64),
+    V_out: wp.array(dtype=wp.vec3d),
+):
+    """Sweeps of projected Gauss-Seidel (module docstring) from the forces in ``f`` (a warm start);
+    stats = [sweeps, last sweep's residual [m]]; V_out = V0 + K f of the final forces. Launch with dim = 1."""
+    m = V0.shape[0]
+    sweeps = int(0)
+    res = wp.float64(0.0)
+    done = int(0)
+    for it in range(max_iter):
+        if done == 0:
+            res = wp.float64(0.0)
+            for i in range(m):
+                V = V0[i] + response_times(K, f, i)
+                B = diagonal_block(K, i)
+                fi = f[i]
+                new = fi
+                if kind[i] == FIXED:
+                    new = fi + wp.inverse(B) * (target[i] - V)
+                else:
+                    new = contact_update(B, V, fi, normal[i], height[i], target[i], mu[i])
+                res = wp.max(res, wp.length(B * (new - fi)))
+                f[i] = new
+            sweeps = it + 1
+            if res <= tol:
+                done = 1
+    stats[0] = wp.float64(sweeps)
+    stats[1] = res
+    for i in range(m):
+        V_out[i] = V0[i] + response_times(K, f, i)

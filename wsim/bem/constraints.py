@@ -1,0 +1,81 @@
+"""BEM side of the point constraints: the linear response of node positions to point forces
+(Eqs. 13-14, ``wsim.kernels.bem_constraints``) and the tractions that apply them.
+
+``PointResponse`` holds what the response needs per node besides W = H_0^-1 G' (already on the
+device in ``StepOperators``): 1 / a_j and C_j / a_j. It is immutable and shared like the operators.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from wsim.bem.stepper import StepOperators
+from wsim.kernels import bem_constraints as kb
+
+
+@dataclass(frozen=True)
+class PointResponse:
+    """Per-node pieces of K (``wsim.kernels.bem_constraints``) on one device.
+
+    Attributes:
+        area: (N,) a_j = int N_j dGamma [m^2]; inv_area, C_over_a on the device.
+    """
+
+    area: np.ndarray
+    inv_area: wp.array
+    C_over_a: wp.array
+
+    @classmethod
+    def build(cls, so: StepOperators) -> PointResponse:
+        ops = so.operators
+        area = ops.surface.node_areas()
+        n = ops.n_nodes
+        C = ops.C.reshape(3, n, 3).transpose(1, 0, 2) / area[:, None, None]  # C_j / a_j, (N, 3, 3)
+        return cls(area=area, inv_area=wp.array(1.0 / area, dtype=wp.float64, device=so.device),
+                   C_over_a=wp.array(np.ascontiguousarray(C), dtype=wp.mat33d, device=so.device))
+
+
+def response_matrix(so: StepOperators, pr: PointResponse, nodes: np.ndarray, Rk: np.ndarray, R1: np.ndarray,
+                    lin_a: np.ndarray, lin_c: np.ndarray) -> wp.array:
+    """K (3m, 3m) [m/N] of the m ``nodes`` (float64, on the device); lin_a, lin_c (m, 3, 3) as in
+    ``response_blocks`` (``frame_terms``)."""
+    d = so.device
+    m = len(nodes)
+    K = wp.empty((3 * m, 3 * m), dtype=wp.float64, device=d)
+
+    def mats(a: np.ndarray) -> wp.array:
+        return wp.array(np.ascontiguousarray(a, dtype=np.float64), dtype=wp.mat33d, device=d)
+
+    wp.launch(kb.response_blocks, dim=(m, m), device=d,
+              inputs=[so.H0_inv_Gp, wp.array(nodes.astype(np.int32), dtype=wp.int32, device=d),
+                      wp.mat33d(*Rk.ravel()), wp.mat33d(*R1.ravel()), pr.inv_area, pr.C_over_a, mats(lin_a),
+                      mats(lin_c), wp.float64(1.0 / so.operators.mass), K])
+    return K
+
+
+def frame_terms(so: StepOperators, nodes: np.ndarray, lever: np.ndarray, R: np.ndarray, dt: float,
+                frame_update: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(lin_a, lin_c) of ``response_blocks`` for the points ``nodes`` with world lever arms ``lever``."""
+    m = len(nodes)
+    if frame_update:
+        lin_a = np.broadcast_to(dt * dt * np.eye(3), (m, 3, 3))
+        r = lever
+        rx = np.zeros((m, 3, 3))
+        rx[:, 0, 1], rx[:, 0, 2], rx[:, 1, 2] = -r[:, 2], r[:, 1], -r[:, 0]
+        rx[:, 1, 0], rx[:, 2, 0], rx[:, 2, 1] = r[:, 2], -r[:, 1], r[:, 0]
+        return lin_a, -dt * dt * rx
+    E = so.E.reshape(-1, 3, 6)[nodes]  # (m, 3, 6)
+    return -R @ E[:, :, :3] @ R.T, -R @ E[:, :, 3:] @ R.T
+
+
+def add_point_displacement(so: StepOperators, nodes: np.ndarray, p: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """u + W[:, nodes] p for the (m, 3) frame-axes tractions p on ``nodes`` (u: (3N,) host)."""
+    d = so.device
+    out = wp.array(u, dtype=wp.float64, device=d)
+    wp.launch(kb.add_columns, dim=so.size, device=d,
+              inputs=[so.H0_inv_Gp, wp.array(nodes.astype(np.int32), dtype=wp.int32, device=d),
+                      wp.array(np.ascontiguousarray(p), dtype=wp.vec3d, device=d), out])
+    return out.numpy()
