@@ -150,3 +150,39 @@ def pgs_points(
     stats[1] = res
     for i in range(m):
         V_out[i] = V0[i] + response_times(K, f, i)
+
+
+@wp.kernel
+def assemble_delassus(
+    K: wp.array(dtype=wp.float64),
+    k_offset: wp.array(dtype=int),
+    k_rows: wp.array(dtype=int),
+    side_body: wp.array2d(dtype=int),
+    side_point: wp.array2d(dtype=int),
+    side_sign: wp.array2d(dtype=wp.float64),
+    out: wp.array2d(dtype=wp.float64),
+):
+    """The response of constraint values to constraint forces, out_cd = sum over the sides s of c
+    and s' of d on one body b of sign_s sign_s' K_b[p_s, p_s'] (3 x 3 blocks). A constraint has one
+    side (a point held or in contact) or two (a joint: the first point minus the second, its force
+    on the first and minus it on the second). Body b's (3 n_b)^2 row-major response starts at
+    K[k_offset[b]] with k_rows[b] = 3 n_b rows. Launch with dim = (C, C)."""
+    c, d = wp.tid()
+    blk = wp.mat33d()
+    for s in range(2):
+        sc = side_sign[c, s]
+        if sc != wp.float64(0.0):
+            b = side_body[c, s]
+            for t in range(2):
+                sd = side_sign[d, t]
+                if sd != wp.float64(0.0) and side_body[d, t] == b:
+                    o = k_offset[b]
+                    n = k_rows[b]
+                    r0 = 3 * side_point[c, s]
+                    c0 = 3 * side_point[d, t]
+                    for p in range(3):
+                        for q in range(3):
+                            blk[p, q] = blk[p, q] + sc * sd * K[o + (r0 + p) * n + c0 + q]
+    for p in range(3):
+        for q in range(3):
+            out[3 * c + p, 3 * d + q] = blk[p, q]

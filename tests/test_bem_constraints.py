@@ -180,3 +180,48 @@ def test_constraint_input_errors(box_ops):
         wsim.BemBody(BOX, MAT, DT, operators=box_ops, name="cube2", friction=-1.0)
     with pytest.raises(InvalidParameter, match="handle"):
         body.release(99)
+
+
+def _facing_vertices(mesh, offset):
+    """Vertices on the +x face of ``mesh`` and the matching vertices of a copy shifted by ``offset``."""
+    va = np.flatnonzero(np.isclose(mesh.vertices[:, 0], mesh.vertices[:, 0].max()))
+    vb = np.array([np.flatnonzero(np.all(np.isclose(mesh.vertices, mesh.vertices[i] - offset), axis=1))[0] for i in va])
+    return va, vb
+
+
+def test_joint_holds_two_bodies_together_with_equal_and_opposite_forces(box_ops, device):
+    """Two cubes glued face to face, thrown with different velocities and a spin: the joined vertices
+    stay together (to the solver's tolerance), the joint's impulses on the two bodies cancel and the
+    pair's momentum changes by gravity alone."""
+    world = wsim.World(fps=1.0 / DT, device=device, gravity=(0.0, -G, 0.0))
+    a = world.add(wsim.BemBody(BOX, MAT, DT, operators=box_ops, name="a", position=(0.0, 1.0, 0.0),
+                               velocity=(0.5, 0.0, 0.0), angular_velocity=(0.0, 0.0, 2.0)))
+    b = world.add(wsim.BemBody(BOX, MAT, DT, operators=box_ops, name="b", position=(0.2, 1.0, 0.0),
+                               velocity=(-0.2, 0.3, 0.0)))
+    va, vb = _facing_vertices(BOX, np.array([0.2, 0.0, 0.0]))
+    world.add_joint(wsim.PointJoint(a, va, b, vb, name="glue"))
+    p0 = a.linear_momentum() + b.linear_momentum()
+    for _ in range(60):
+        world.step()
+        assert np.abs(a.points()[va] - b.points()[vb]).max() < a.constraint_tolerance
+    assert a.steps == b.steps == 60
+    assert np.linalg.norm(a.joint_impulse) > 1.0  # the joint did work: a was thrown apart from b
+    assert np.abs(a.joint_impulse + b.joint_impulse).max() < 1e-12
+    dp = a.linear_momentum() + b.linear_momentum() - p0 - (a.mass + b.mass) * np.array([0.0, -G, 0.0]) * a.time
+    assert np.abs(dp).max() < 1e-9
+
+
+def test_joint_input_errors(box_ops):
+    world = wsim.World(fps=1.0 / DT, device="cpu")
+    other = wsim.World(fps=1.0 / DT, device="cpu")
+    a = world.add(wsim.BemBody(BOX, MAT, DT, operators=box_ops, name="a"))
+    b = other.add(wsim.BemBody(BOX, MAT, DT, operators=box_ops, name="b"))
+    with pytest.raises(InvalidParameter, match="joint 'j'.*'b' is not in this World"):
+        world.add_joint(wsim.PointJoint(a, [0], b, [0], name="j"))
+    c = world.add(wsim.BemBody(BOX, MAT, DT, operators=box_ops, name="c"))
+    with pytest.raises(InvalidParameter, match="joint 'j'.*vertex id 99 of body 'c'"):
+        world.add_joint(wsim.PointJoint(a, [0], c, [99], name="j"))
+    with pytest.raises(InvalidParameter, match="pair one to one"):
+        wsim.PointJoint(a, [0, 1], c, [0], name="j")
+    with pytest.raises(InvalidParameter, match="itself"):
+        wsim.PointJoint(a, [0], a, [1], name="j")

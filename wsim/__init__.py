@@ -12,6 +12,7 @@ The scene API::
 from wsim.bem.body import BemBody
 from wsim.body import Body
 from wsim.colliders import Collider, GroundPlane, MeshCollider
+from wsim.constraints import PointJoint
 from wsim.eol.body import EolBody, Plasticity
 from wsim.errors import (
     CheckpointError,
@@ -51,6 +52,7 @@ __all__ = [
     "GroundPlane",
     "MeshCollider",
     "Handle",
+    "PointJoint",
     "WsimError",
     "InvalidMesh",
     "InvalidMaterial",

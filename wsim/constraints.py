@@ -1,20 +1,25 @@
 """Point constraints solved against a dense linear response: the seam between a body's dynamics
 and its contacts, fixed points and joints (Sugimoto et al. 2022, Sec. 3.4).
 
-A body that can linearize the end-of-step world positions of some of its surface points in the
-forces applied there, V(f) = V0 + K f, hands (V0, K) and a ``PointSet`` to ``solve_points``, which
-runs projected Gauss-Seidel on the device (``wsim.kernels.pgs``) and returns the forces. The body
-then applies them. Nothing here knows which method produced K, so another body's points can join
-the same solve by stacking their blocks (the contact-between-bodies issue).
+A body that takes part (a ``Participant``: today ``BemBody``) opens its step with
+``constraint_begin``, which predicts the unconstrained step and returns its own constrained points
+(fixed, driven, in contact). ``solve_group`` adds the ``PointJoint`` s between participants, asks each
+for the linear response K of its points (V(f) = V0 + K f, world forces f [N] held over the step),
+assembles the constraints' response from the blocks (``wsim.kernels.pgs.assemble_delassus``), runs
+projected Gauss-Seidel on the device and hands each participant its points' forces
+(``constraint_end``). Nothing here knows which method produced K, so bodies of other methods can
+join the same solve by implementing the four methods of ``Participant``.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any, Protocol, Sequence
 
 import numpy as np
 import warp as wp
 
+from wsim.errors import InvalidParameter
 from wsim.kernels import pgs
 
 CONTACT = 0
@@ -81,3 +86,185 @@ def solve_points(K: wp.array, V0: np.ndarray, points: PointSet, f0: np.ndarray, 
                       int(max_iter), wp.float64(tol), f, stats, V])
     s = stats.numpy()
     return f.numpy().astype(np.float64), V.numpy().astype(np.float64), int(s[0]), float(s[1])
+
+
+class Participant(Protocol):
+    """A body whose step can be constrained at surface points (the seam of ``solve_group``)."""
+
+    name: str
+    dt: float
+    steps: int
+    constraint_tolerance: float
+    constraint_iterations: int
+    failed: bool
+
+    def joint_points(self, vertex_ids: np.ndarray) -> np.ndarray:
+        """The body's points (its own indices) that a joint holds at these mesh vertices."""
+
+    def constraint_begin(self) -> tuple[np.ndarray, PointSet, np.ndarray]:
+        """Predict the coming step; returns (points, constraints on them, predicted world positions of
+        every point of the body (N, 3)). Points are the body's own indices (BEM: nodes)."""
+
+    def constraint_response(self, points: np.ndarray) -> wp.array:
+        """K (3m, 3m) [m/N] of ``points`` on the device: V = V0 + K f."""
+
+    def constraint_positions(self, points: np.ndarray, forces: np.ndarray) -> np.ndarray:
+        """True end-of-step world positions of ``points`` with world forces (m, 3) [N] applied there."""
+
+    def constraint_warm(self, points: np.ndarray) -> np.ndarray:
+        """The forces (m, 3) [N] the points carried last step, to start the solve from (zeros if none)."""
+
+    def constraint_end(self, points: np.ndarray, forces: np.ndarray, kind: np.ndarray, record: SolveRecord) -> None:
+        """Apply the forces and finish the step; ``kind`` (m,) says what each force came from:
+        CONTACT, FIXED or JOINT (for the body's impulse read-outs)."""
+
+
+JOINT = 2
+
+
+@dataclass(frozen=True)
+class PointJoint:
+    """Vertices of two bodies held together: equal positions, equal and opposite forces (paper Sec.
+    3.4, point joints). ``vertices_a[k]`` of ``body_a`` is joined to ``vertices_b[k]`` of ``body_b``.
+    Add it with ``World.add_joint``; both bodies must be in that World and step with one dt."""
+
+    body_a: Any
+    vertices_a: np.ndarray
+    body_b: Any
+    vertices_b: np.ndarray
+    name: str = "joint"
+
+    def __post_init__(self) -> None:
+        a = np.asarray(self.vertices_a)
+        b = np.asarray(self.vertices_b)
+        for what, v in (("vertices_a", a), ("vertices_b", b)):
+            if v.ndim != 1 or v.size == 0 or not np.issubdtype(v.dtype, np.integer):
+                raise InvalidParameter(f"joint '{self.name}': {what} must be a non-empty 1-D list of vertex ids")
+        if a.shape != b.shape:
+            raise InvalidParameter(f"joint '{self.name}': {len(a)} vertices of '{self.body_a.name}' against "
+                                   f"{len(b)} of '{self.body_b.name}'; they pair one to one")
+        if self.body_a is self.body_b:
+            raise InvalidParameter(f"joint '{self.name}': joins body '{self.body_a.name}' to itself")
+        object.__setattr__(self, "vertices_a", a.astype(np.int64))
+        object.__setattr__(self, "vertices_b", b.astype(np.int64))
+
+
+@dataclass
+class _Side:
+    """One participant's share of a group solve."""
+
+    body: Any
+    own: np.ndarray  # own constrained points
+    own_set: PointSet
+    V: np.ndarray  # predicted positions of all its points
+    points: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # own + joint points
+
+
+def solve_group(bodies: Sequence[Any], joints: Sequence[tuple[Any, np.ndarray, Any, np.ndarray]], device: wp.Device,
+                tol: float, max_iter: int, step: int, refinements: int = 3) -> None:
+    """One constrained step of ``bodies`` (participants) coupled by ``joints`` ((body_a, points_a,
+    body_b, points_b): the bodies' own point indices). See the module docstring.
+
+    The linear model is refined by the true positions of the solved forces (``constraint_positions``)
+    up to ``refinements`` times, until it misses them by less than ``tol``.
+    """
+    sides = []
+    index = {}
+    for b in bodies:
+        own, own_set, V = b.constraint_begin()
+        index[id(b)] = len(sides)
+        sides.append(_Side(b, own, own_set, V))
+    # constraints: own points first (one side), then joints (two sides)
+    side_body, side_point, side_sign = [], [], []
+    V0c, kinds, normal, height, target, mu = [], [], [], [], [], []
+    for k, s in enumerate(sides):
+        n_own = len(s.own)
+        s.points = s.own.astype(np.int64)
+        for i in range(n_own):
+            side_body.append((k, 0))
+            side_point.append((i, 0))
+            side_sign.append((1.0, 0.0))
+        V0c.append(s.V[s.own])
+        kinds.append(s.own_set.kind)
+        normal.append(s.own_set.normal)
+        height.append(s.own_set.height)
+        target.append(s.own_set.target)
+        mu.append(s.own_set.mu)
+    for body_a, pa, body_b, pb in joints:
+        ka, kb = index[id(body_a)], index[id(body_b)]
+        sa, sb = sides[ka], sides[kb]
+        ia = len(sa.points) + np.arange(len(pa))
+        ib = len(sb.points) + np.arange(len(pb))
+        sa.points = np.concatenate([sa.points, pa])
+        sb.points = np.concatenate([sb.points, pb])
+        for i, j in zip(ia, ib):
+            side_body.append((ka, kb))
+            side_point.append((int(i), int(j)))
+            side_sign.append((1.0, -1.0))
+        V0c.append(sa.V[pa] - sb.V[pb])
+        m = len(pa)
+        kinds.append(np.full(m, FIXED, dtype=np.int32))
+        normal.append(np.zeros((m, 3)))
+        height.append(np.zeros(m))
+        target.append(np.zeros((m, 3)))
+        mu.append(np.zeros(m))
+    C = len(side_body)
+    if C == 0:
+        for s in sides:
+            s.body.constraint_end(s.points, np.zeros((0, 3)), np.zeros(0, dtype=np.int32), None)
+        return
+    cons = PointSet(np.concatenate(kinds).astype(np.int32), np.concatenate(normal), np.concatenate(height),
+                    np.concatenate(target), np.concatenate(mu))
+    V0 = np.concatenate(V0c)
+    side_body_a = np.array(side_body, dtype=np.int32)
+    side_point_a = np.array(side_point, dtype=np.int32)
+    side_sign_a = np.array(side_sign, dtype=np.float64)
+    # responses of every side's points, one flat device array
+    blocks = [s.body.constraint_response(s.points) if len(s.points) else None for s in sides]
+    rows = np.array([3 * len(s.points) for s in sides], dtype=np.int32)
+    offsets = np.concatenate([[0], np.cumsum(rows.astype(np.int64) ** 2)])
+    flat = wp.empty(max(int(offsets[-1]), 1), dtype=wp.float64, device=device)
+    for k, blk in enumerate(blocks):
+        if blk is not None:
+            wp.copy(flat, blk.flatten(), dest_offset=int(offsets[k]), count=int(rows[k]) ** 2)
+    D = wp.empty((3 * C, 3 * C), dtype=wp.float64, device=device)
+    wp.launch(pgs.assemble_delassus, dim=(C, C), device=device,
+              inputs=[flat, wp.array(offsets[:-1].astype(np.int32), dtype=wp.int32, device=device),
+                      wp.array(rows, dtype=wp.int32, device=device),
+                      wp.array(side_body_a, dtype=wp.int32, device=device),
+                      wp.array(side_point_a, dtype=wp.int32, device=device),
+                      wp.array(side_sign_a, dtype=wp.float64, device=device), D])
+    # warm start: each participant's last forces on the same points
+    lam0 = np.zeros((C, 3))
+    for k, s in enumerate(sides):
+        first = np.flatnonzero(side_body_a[:, 0] == k)
+        if len(first):
+            lam0[first] = s.body.constraint_warm(s.points[side_point_a[first, 0]])
+    shift = np.zeros_like(V0)
+    sweeps_total = 0
+    for _ in range(refinements):
+        lam, V_lin, sweeps, residual = solve_points(D, V0 + shift, cons, lam0, tol, max_iter, device)
+        sweeps_total += sweeps
+        forces = [np.zeros((len(s.points), 3)) for s in sides]
+        for side in range(2):
+            for k in range(len(sides)):
+                on = np.flatnonzero((side_sign_a[:, side] != 0.0) & (side_body_a[:, side] == k))
+                np.add.at(forces[k], side_point_a[on, side], side_sign_a[on, side, None] * lam[on])
+        true = [s.body.constraint_positions(s.points, f) if len(s.points) else np.zeros((0, 3))
+                for s, f in zip(sides, forces)]
+        value = np.zeros_like(V0)
+        for side in range(2):
+            for k in range(len(sides)):
+                on = np.flatnonzero((side_sign_a[:, side] != 0.0) & (side_body_a[:, side] == k))
+                value[on] += side_sign_a[on, side, None] * true[k][side_point_a[on, side]]
+        miss = value - V_lin
+        if np.abs(miss).max() <= tol:
+            break
+        shift = shift + miss
+        lam0 = lam
+    record = SolveRecord(step=step, points=C, contacts=int(np.sum(cons.kind == CONTACT)), sweeps=sweeps_total,
+                         residual=residual, converged=residual <= tol)
+    for k, s in enumerate(sides):
+        kind = np.full(len(s.points), JOINT, dtype=np.int32)
+        kind[: len(s.own)] = s.own_set.kind
+        s.body.constraint_end(s.points, forces[k], kind, record)

@@ -3,7 +3,9 @@
 The World owns time. ``step`` advances every body from frame time t_f = f / fps to t_{f+1}; each
 body covers that interval with its own internal steps (PBD substeps, BEM's fixed dt, EoL's
 adaptive dt). After each frame every body is checked for NaN/Inf, and ``run`` hands the frame to
-the USD writer. Bodies of different methods meet only through colliders in this version.
+the USD writer. Bodies of different methods meet only through colliders in this version. Bodies
+joined by ``PointJoint`` s (BEM bodies of one dt) step together: one constraint solve per step
+covers all of them (``wsim.constraints.solve_group``).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from wsim import constraints as wc
 from wsim.body import Body
 from wsim.validate import as_vec3, positive_int
 from wsim.colliders import Collider, Surfaces
@@ -81,6 +84,8 @@ class World:
         self.frame = 0
         self._bound = False
         self.surfaces: Surfaces | None = None  # the colliders as kinematic surfaces, made at the first step
+        self.joints: list[wc.PointJoint] = []
+        self._groups: list[tuple[list[Body], list]] = []  # bodies stepped together, their joints as points
 
     @property
     def frame_dt(self) -> float:
@@ -115,11 +120,36 @@ class World:
         self.colliders.append(collider)
         return collider
 
+    def add_joint(self, joint: wc.PointJoint) -> wc.PointJoint:
+        """Join vertices of two bodies of this World (returned); the joined bodies then step together."""
+        if self._bound:
+            raise InvalidParameter(f"World: add joint '{getattr(joint, 'name', joint)}' before the first step")
+        if not isinstance(joint, wc.PointJoint):
+            raise InvalidParameter(f"World.add_joint takes a wsim.PointJoint, got {type(joint).__name__}")
+        for body, ids in ((joint.body_a, joint.vertices_a), (joint.body_b, joint.vertices_b)):
+            if not any(body is b for b in self.bodies):
+                raise InvalidParameter(f"joint '{joint.name}': body '{getattr(body, 'name', body)}' is not in this World "
+                                       "(add both bodies with world.add first)")
+            if not hasattr(body, "constraint_begin"):
+                raise InvalidParameter(f"joint '{joint.name}': body '{body.name}' is a {type(body).__name__}; "
+                                       "joints join BEM bodies")
+            n = len(body.rest_vertices)
+            bad = ids[(ids < 0) | (ids >= n)]
+            if bad.size:
+                raise InvalidParameter(f"joint '{joint.name}': vertex id {int(bad[0])} of body '{body.name}' is out of "
+                                       f"range [0, {n - 1}]")
+        if abs(joint.body_a.dt - joint.body_b.dt) > 1e-12 * joint.body_a.dt:
+            raise InvalidParameter(f"joint '{joint.name}': bodies '{joint.body_a.name}' (dt = {joint.body_a.dt} s) and "
+                                   f"'{joint.body_b.name}' (dt = {joint.body_b.dt} s) must step with one dt")
+        self.joints.append(joint)
+        return joint
+
     def _bind(self) -> None:
         if not self._bound:
             self.surfaces = Surfaces(self.colliders, self.up)
             for body in self.bodies:
                 body.attach_colliders(self.surfaces)
+            self._groups = _joint_groups(self.joints)
             self._bound = True
 
     def checkpoint(self, path: str | Path) -> Path:
@@ -147,8 +177,12 @@ class World:
         t0 = self.frame / self.fps
         t1 = (self.frame + 1) / self.fps
         self.surfaces.new_frame()
+        grouped = {id(b) for bodies, _ in self._groups for b in bodies}
         for body in self.bodies:
-            body.advance(t0, t1)
+            if id(body) not in grouped:
+                body.advance(t0, t1)
+        for bodies, joints in self._groups:
+            _advance_group(bodies, joints, t1, self.device)
         self.frame += 1
 
     def _check_frame(self) -> None:
@@ -223,3 +257,38 @@ class World:
             appended=bool(writer is not None and writer.appended),
             bodies={b.name: int(b.faces.max()) + 1 if len(b.faces) else 0 for b in self.bodies},
         )
+
+
+def _joint_groups(joints: Sequence[wc.PointJoint]) -> list[tuple[list[Body], list]]:
+    """Bodies connected by joints (union-find), each group with its joints as body points."""
+    parent: dict[int, int] = {}
+    bodies: dict[int, Body] = {}
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for j in joints:
+        for b in (j.body_a, j.body_b):
+            parent.setdefault(id(b), id(b))
+            bodies[id(b)] = b
+        parent[find(id(j.body_a))] = find(id(j.body_b))
+    groups: dict[int, tuple[list[Body], list]] = {}
+    for key, b in bodies.items():
+        groups.setdefault(find(key), ([], []))[0].append(b)
+    for j in joints:
+        groups[find(id(j.body_a))][1].append((j.body_a, j.body_a.joint_points(j.vertices_a),
+                                              j.body_b, j.body_b.joint_points(j.vertices_b)))
+    return list(groups.values())
+
+
+def _advance_group(bodies: list[Body], joints: list, t1: float, device) -> None:
+    """Step joined bodies together to the nearest multiple of their dt to t1, one solve per step."""
+    dt = bodies[0].dt
+    target = int(math.floor(t1 / dt + 0.5))
+    tol = min(b.constraint_tolerance for b in bodies)
+    iterations = max(b.constraint_iterations for b in bodies)
+    while bodies[0].steps < target and not any(b.failed for b in bodies):
+        wc.solve_group(bodies, joints, device, tol, iterations, bodies[0].steps + 1)

@@ -60,8 +60,8 @@ class BemState:
         steps: steps taken.
         last_loaded: last step with a nonzero traction (for the growth check).
         window_peak, window_previous, window_growing: the growth check's running window.
-        contact_impulse, fixed_impulse: (3,) world impulses of the contact and of the fixed and
-            driven points so far [N s].
+        contact_impulse, fixed_impulse, joint_impulse: (3,) world impulses of the contact, of the
+            fixed and driven points and of the joints so far [N s].
         point_nodes, point_forces: the nodes and world forces [N] of the last constraint solve (its
             warm start).
     """
@@ -81,6 +81,7 @@ class BemState:
     window_growing: int = 0
     contact_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
     fixed_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    joint_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
     point_nodes: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     point_forces: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
@@ -413,6 +414,12 @@ class BemBody(Body):
         self._require_bound()
         return self.state.fixed_impulse.copy()
 
+    @property
+    def joint_impulse(self) -> np.ndarray:
+        """World impulse the joints have applied to this body so far [N s]."""
+        self._require_bound()
+        return self.state.joint_impulse.copy()
+
     def fix(self, vertex_ids: Any, target: Any = None) -> int:
         """Hold mesh vertices at world positions from the next step on; returns a handle for ``release``.
 
@@ -446,6 +453,12 @@ class BemBody(Body):
         self._next_handle += 1
         self._fixed[handle] = (ids, nodes, target, slot[self._surface.vertex[nodes]])
         return handle
+
+    def joint_points(self, vertex_ids: np.ndarray) -> np.ndarray:
+        """The node a joint holds at each mesh vertex (its first double-node copy)."""
+        first = np.full(len(self._node_count), -1)
+        first[self._surface.vertex[::-1]] = np.arange(self._surface.n_nodes)[::-1]
+        return first[np.asarray(vertex_ids)].astype(np.int64)
 
     def release(self, handle: int) -> None:
         """Stop holding the vertices of a ``fix`` handle."""
@@ -520,10 +533,12 @@ class BemBody(Body):
         sel = np.flatnonzero((hit.numpy() > 0) & ~held)
         return sel, normal.numpy()[sel], height.numpy()[sel]
 
-    def _solve_constraints(self, u: np.ndarray, a_ext: np.ndarray, alpha_ext: np.ndarray
-                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Forces at the held and contacting nodes that meet their constraints at the step's end
-        (Eq. 14, ``wsim.constraints``), applied as tractions: u, a_ext, alpha_ext of the constrained step."""
+    # -- the constraint seam (``wsim.constraints.Participant``) --------------------------------------
+    def constraint_begin(self) -> tuple[np.ndarray, wc.PointSet, np.ndarray]:
+        """Predict the coming step (history, loads, Eq. 12 and the frame update without point forces);
+        returns this body's held and contacting nodes, their constraints and every node's predicted
+        world position (see ``wsim.constraints``)."""
+        u, a_ext, alpha_ext = self.unconstrained_solve()
         st, so = self.state, self._so
         ops = so.operators
         t0 = time.perf_counter()
@@ -540,67 +555,84 @@ class BemBody(Body):
         V = lever + pred.T
         X_prev = (x + st.u.reshape(-1, 3)) @ f.R.T + f.T
         nodes, points = self._constraint_points(V, X_prev, t)
-        t0 = self._tick("collision", t0)
-        if not len(points):
-            st.point_nodes, st.point_forces = np.zeros(0, dtype=np.int64), np.zeros((0, 3))
-            return u, a_ext, alpha_ext
+        self._cs = dict(u=u, a_ext=a_ext, alpha_ext=alpha_ext, lever=lever, x=x, pred_R=pred.R, t=t)
         if self._response is None:
             self._response = PointResponse.build(so)
-        R1 = f.R
-        lin_a, lin_c = frame_terms(so, nodes, lever[nodes], f.R, self.dt, self.frame_update)
-        K = response_matrix(so, self._response, nodes, pred.R, R1, lin_a, lin_c)
-        # warm start: last step's force on the same node
-        f0 = np.zeros((len(nodes), 3))
-        if len(st.point_nodes):
-            last = dict(zip(st.point_nodes.tolist(), range(len(st.point_nodes))))
-            for k, nd in enumerate(nodes.tolist()):
-                j = last.get(nd)
-                if j is not None:
-                    f0[k] = st.point_forces[j]
-        tol = self.constraint_tol if self.constraint_tol is not None else 1e-5 * ops.r_max
-        # Eq. (14) is first order in the rotation increment; the true positions of the solved forces
-        # are computed and the solve repeated with the linear model shifted by the difference
-        # (a fixed-point iteration on the nonlinearity), until it is below tol (at most 3 passes)
-        V0 = V[nodes]
-        shift = np.zeros_like(V0)
-        sweeps_total = 0
-        for _ in range(3):
-            forces, V_lin, sweeps, residual = wc.solve_points(K, V0 + shift, points, f0, tol, self.constraint_iterations,
-                                                               self._device)
-            sweeps_total += sweeps
-            u_c, a_c, alpha_c, p_c = self._with_point_forces(nodes, forces, u, a_ext, alpha_ext, R1)
-            if not self.frame_update:
-                break
-            end = f.copy()
-            end.update(self.dt, self._gravity, a_c, alpha_c, self._inertia, self._inertia_inv, self.gyroscopic)
-            V_true = (x[nodes] + u_c.reshape(-1, 3)[nodes]) @ end.R.T + end.T
-            miss = V_true - V_lin
-            if np.abs(miss).max() <= tol:
-                break
-            shift = shift + miss
-            f0 = forces
-        converged = residual <= tol
-        contact = points.kind == wc.CONTACT
-        self.constraint_history.append(wc.SolveRecord(step=st.steps + 1, points=len(points), contacts=int(contact.sum()),
-                                                      sweeps=sweeps_total, residual=residual, converged=converged))
-        if not converged:
-            self.unconverged_steps += 1
-            if self.unconverged_steps == 1:
-                warnings.warn(f"body '{self.name}': the constraint solve at step {st.steps + 1} (t = {t:.6g} s) "
-                              f"stopped after {sweeps} sweeps at residual {residual:.3g} m > tol {tol:.3g} m "
-                              "(see body.constraint_history)", RuntimeWarning, stacklevel=3)
-        n3 = so.size
-        p_total = p_c if self._p_loads is None else self._p_loads + p_c
-        self._p_in.numpy()[:n3] = p_total
-        wp.copy(self._p, self._p_in, count=n3)
-        self._p_live = True
-        self._loaded_now = True
-        st.contact_impulse = st.contact_impulse + self.dt * forces[contact].sum(axis=0)
-        st.fixed_impulse = st.fixed_impulse + self.dt * forces[~contact].sum(axis=0)
-        st.point_nodes, st.point_forces = nodes.astype(np.int64), forces
-        u, a_ext, alpha_ext = u_c, a_c, alpha_c
+        self._tick("collision", t0)
+        return nodes.astype(np.int64), points, V
+
+    def constraint_response(self, points: np.ndarray) -> wp.array:
+        """K (3m, 3m) of Eq. (14) for the nodes ``points`` (``wsim.bem.constraints``)."""
+        t0 = time.perf_counter()
+        cs, f = self._cs, self.state.frame
+        lin_a, lin_c = frame_terms(self._so, points, cs["lever"][points], f.R, self.dt, self.frame_update)
+        K = response_matrix(self._so, self._response, points, cs["pred_R"], f.R, lin_a, lin_c)
         self._tick("constraints", t0)
-        return u, a_ext, alpha_ext
+        return K
+
+    def constraint_positions(self, points: np.ndarray, forces: np.ndarray) -> np.ndarray:
+        """World positions the nodes ``points`` end the step at with the forces applied there."""
+        cs, f = self._cs, self.state.frame
+        u_c, a_c, alpha_c, _ = self._with_point_forces(points, forces, cs["u"], cs["a_ext"], cs["alpha_ext"], f.R)
+        end = f.copy()
+        if self.frame_update:
+            end.update(self.dt, self._gravity, a_c, alpha_c, self._inertia, self._inertia_inv, self.gyroscopic)
+        else:
+            u_c = u_c + self._so.E @ np.concatenate([-(a_c + f.R.T @ self._gravity), -alpha_c])
+        return (cs["x"][points] + u_c.reshape(-1, 3)[points]) @ end.R.T + end.T
+
+    def constraint_warm(self, points: np.ndarray) -> np.ndarray:
+        st = self.state
+        out = np.zeros((len(points), 3))
+        if len(st.point_nodes):
+            last = np.full(self._so.operators.n_nodes, -1)
+            last[st.point_nodes] = np.arange(len(st.point_nodes))
+            j = last[points]
+            out[j >= 0] = st.point_forces[j[j >= 0]]
+        return out
+
+    def constraint_end(self, points: np.ndarray, forces: np.ndarray, kind: np.ndarray,
+                       record: wc.SolveRecord | None) -> None:
+        """Apply the point forces as tractions and finish the step (``_finish_step``)."""
+        t0 = time.perf_counter()
+        st, so, cs = self.state, self._so, self._cs
+        u, a_ext, alpha_ext = cs["u"], cs["a_ext"], cs["alpha_ext"]
+        if len(points):
+            u, a_ext, alpha_ext, p_c = self._with_point_forces(points, forces, u, a_ext, alpha_ext, st.frame.R)
+            n3 = so.size
+            self._p_in.numpy()[:n3] = p_c if self._p_loads is None else self._p_loads + p_c
+            wp.copy(self._p, self._p_in, count=n3)
+            self._p_live = True
+            self._loaded_now = True
+            for k, attr in ((wc.CONTACT, "contact_impulse"), (wc.FIXED, "fixed_impulse"), (wc.JOINT, "joint_impulse")):
+                setattr(st, attr, getattr(st, attr) + self.dt * forces[kind == k].sum(axis=0))
+        st.point_nodes, st.point_forces = points.astype(np.int64), np.asarray(forces, dtype=np.float64).reshape(-1, 3)
+        if record is not None:
+            self.constraint_history.append(record)
+            if not record.converged:
+                self.unconverged_steps += 1
+                if self.unconverged_steps == 1:
+                    warnings.warn(f"body '{self.name}': the constraint solve at step {record.step} (t = {cs['t']:.6g} s) "
+                                  f"stopped after {record.sweeps} sweeps at residual {record.residual:.3g} m "
+                                  f"> tol {self.constraint_tolerance:.3g} m (see body.constraint_history)", RuntimeWarning, stacklevel=4)
+        self._cs = None
+        self._tick("constraints", t0)
+        self._finish_step(u, a_ext, alpha_ext, time.perf_counter(), correct=False)
+
+    @property
+    def constraint_tolerance(self) -> float:
+        """The constraint solve's tolerance [m] in use (``constraint_tol`` or its default)."""
+        return self.constraint_tol if self.constraint_tol is not None else 1e-5 * self._so.operators.r_max
+
+    @property
+    def failed(self) -> bool:
+        """Whether the body has stopped (``check_finite`` raises the reason)."""
+        return self._failure is not None
+
+    @property
+    def constrained(self) -> bool:
+        """Whether the body's steps go through the constraint solve (held points or colliders)."""
+        return bool(self._fixed) or self._surfaces is not None
 
     def advance(self, t0: float, t1: float) -> None:
         """Take steps of dt until the body's time is the nearest multiple of dt to t1."""
@@ -621,15 +653,14 @@ class BemBody(Body):
     # -- the step -----------------------------------------------------------------------------
     def step(self) -> None:
         """One step of length dt (Eqs. 9-12, Sec. 3.2.1, Eq. 11)."""
-        u, a_ext, alpha_ext = self.unconstrained_solve()
-        if self._fixed or self._surfaces is not None:
+        if self.constrained:
             # On a constrained step the error correction moves u's rigid drift into the frame's pose
             # (``Correction.drift``), not its acceleration: the paper's da, dalpha moved the points
             # after the solve (a resting cube slid ~10 um per step) and held 2.5 % of its weight with
             # a force no collider applied. So the constraints have the last word on the positions.
-            u, a_ext, alpha_ext = self._solve_constraints(u, a_ext, alpha_ext)
-            self._finish_step(u, a_ext, alpha_ext, time.perf_counter(), correct=False)
+            wc.solve_group([self], [], self._device, self.constraint_tolerance, self.constraint_iterations, self.steps + 1)
             return
+        u, a_ext, alpha_ext = self.unconstrained_solve()
         self._finish_step(u, a_ext, alpha_ext, time.perf_counter())
 
     def unconstrained_solve(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
