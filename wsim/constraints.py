@@ -70,20 +70,25 @@ class SolveRecord:
     converged: bool
 
 
-def solve_points(K: wp.array, V0: np.ndarray, points: PointSet, f0: np.ndarray, tol: float, max_iter: int,
-                 device: wp.Device) -> tuple[np.ndarray, np.ndarray, int, float]:
+def solve_points(K: wp.array, Kt: wp.array | None, V0: np.ndarray, points: PointSet, f0: np.ndarray, tol: float,
+                 max_iter: int, device: wp.Device) -> tuple[np.ndarray, np.ndarray, int, float]:
     """Forces (m, 3) [N] from projected Gauss-Seidel started at ``f0``; also the linear model's
-    positions V0 + K f (m, 3) [m], the sweeps and the last sweep's residual [m]."""
+    positions V0 + K f (m, 3) [m], the sweeps and the last sweep's residual [m]. With ``Kt`` (K^T)
+    one block runs the sweeps (``pgs_block``; on the CPU a block is one lane), else one thread
+    (``pgs_points``, the reference): the same sweeps in the same order."""
     def dev(a: np.ndarray, dtype) -> wp.array:
         return wp.array(np.ascontiguousarray(a), dtype=dtype, device=device)
 
     f = dev(f0, wp.vec3d)
     stats = wp.zeros(2, dtype=wp.float64, device=device)
     V = wp.empty(len(V0), dtype=wp.vec3d, device=device)
-    wp.launch(pgs.pgs_points, dim=1, device=device,
-              inputs=[K, dev(V0, wp.vec3d), dev(points.kind, wp.int32), dev(points.normal, wp.vec3d),
-                      dev(points.height, wp.float64), dev(points.target, wp.vec3d), dev(points.mu, wp.float64),
-                      int(max_iter), wp.float64(tol), f, stats, V])
+    data = [dev(V0, wp.vec3d), dev(points.kind, wp.int32), dev(points.normal, wp.vec3d),
+            dev(points.height, wp.float64), dev(points.target, wp.vec3d), dev(points.mu, wp.float64),
+            int(max_iter), wp.float64(tol), f, stats]
+    if Kt is not None:
+        wp.launch_tiled(pgs.pgs_block, dim=1, block_dim=pgs.PGS_BLOCK, device=device, inputs=[K, Kt, *data, V])
+    else:
+        wp.launch(pgs.pgs_points, dim=1, device=device, inputs=[K, *data, V])
     s = stats.numpy()
     return f.numpy().astype(np.float64), V.numpy().astype(np.float64), int(s[0]), float(s[1])
 
@@ -228,12 +233,13 @@ def solve_group(bodies: Sequence[Any], joints: Sequence[tuple[Any, np.ndarray, A
         if blk is not None:
             wp.copy(flat, blk.flatten(), dest_offset=int(offsets[k]), count=int(rows[k]) ** 2)
     D = wp.empty((3 * C, 3 * C), dtype=wp.float64, device=device)
+    Dt = wp.empty((3 * C, 3 * C), dtype=wp.float64, device=device)
     wp.launch(pgs.assemble_delassus, dim=(C, C), device=device,
               inputs=[flat, wp.array(offsets[:-1].astype(np.int32), dtype=wp.int32, device=device),
                       wp.array(rows, dtype=wp.int32, device=device),
                       wp.array(side_body_a, dtype=wp.int32, device=device),
                       wp.array(side_point_a, dtype=wp.int32, device=device),
-                      wp.array(side_sign_a, dtype=wp.float64, device=device), D])
+                      wp.array(side_sign_a, dtype=wp.float64, device=device), D, Dt])
     # warm start: each participant's last forces on the same points
     lam0 = np.zeros((C, 3))
     for k, s in enumerate(sides):
@@ -243,7 +249,7 @@ def solve_group(bodies: Sequence[Any], joints: Sequence[tuple[Any, np.ndarray, A
     shift = np.zeros_like(V0)
     sweeps_total = 0
     for _ in range(refinements):
-        lam, V_lin, sweeps, residual = solve_points(D, V0 + shift, cons, lam0, tol, max_iter, device)
+        lam, V_lin, sweeps, residual = solve_points(D, Dt, V0 + shift, cons, lam0, tol, max_iter, device)
         sweeps_total += sweeps
         forces = [np.zeros((len(s.points), 3)) for s in sides]
         for side in range(2):
