@@ -103,3 +103,26 @@ def collider_points(
         normal[i] = n
         height[i] = wp.dot(n, c)
         hit[i] = 1
+
+
+@wp.kernel
+def point_rows(
+    W: wp.array2d(dtype=Any),
+    rows: wp.array(dtype=int),
+    nodes: wp.array(dtype=int),
+    p: wp.array(dtype=wp.vec3d),
+    out: wp.array(dtype=wp.vec3d),
+):
+    """out_i = sum_j W[node rows_i, node nodes_j] p_j: the displacement of the point tractions p at
+    the nodes ``rows`` only (the constraint points), not the whole surface."""
+    i = wp.tid()
+    a = 3 * rows[i]
+    s = wp.vec3d()
+    for j in range(nodes.shape[0]):
+        b = 3 * nodes[j]
+        pj = p[j]
+        for q in range(3):
+            s[0] += wp.float64(W[a, b + q]) * pj[q]
+            s[1] += wp.float64(W[a + 1, b + q]) * pj[q]
+            s[2] += wp.float64(W[a + 2, b + q]) * pj[q]
+    out[i] = s

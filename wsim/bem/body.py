@@ -30,7 +30,8 @@ import warp as wp
 from wsim import mesh as wmesh
 from wsim import constraints as wc
 from wsim.bem import stepper
-from wsim.bem.constraints import PointResponse, add_point_displacement, frame_terms, response_matrix
+from wsim.bem.constraints import (PointResponse, add_point_displacement, frame_terms, point_displacement,
+                                  response_matrix)
 from wsim.rigid import RigidFrame
 from wsim.bem.mass import mass_properties
 from wsim.bem.operators import PRECISIONS, BemOperators, build_operators
@@ -123,8 +124,9 @@ class BemBody(Body):
         constraint_iterations: the most sweeps per step; a step that ends above the tolerance is
             recorded in ``constraint_history`` and counted in ``unconverged_steps``, and the first
             one warns.
-        contact_margin: points of the unconstrained step closer than this to a collider [m] join the
-            contact solve (default 2 % of ``r_max``); the rest are free this step.
+        contact_margin: points whose predicted end-of-step position (the step without contact forces)
+            is closer than this to a collider [m] join the contact solve (default 0.1 % of
+            ``r_max``); the rest are free this step. The prediction already carries the step's motion.
         friction: the body's Coulomb coefficient; a contact uses the larger of it and the collider's
             (the BEM authors' "maximum" rule). None: the collider's.
         **quadrature: quadrature knobs of ``build_operators``.
@@ -500,7 +502,7 @@ class BemBody(Body):
             held[nd] = True
         surfaces = self._surfaces
         if surfaces is not None:
-            margin = self.contact_margin if self.contact_margin is not None else 0.02 * self._so.operators.r_max
+            margin = self.contact_margin if self.contact_margin is not None else 1e-3 * self._so.operators.r_max
             for ci, col in enumerate(surfaces):
                 plane = surfaces.plane(ci)
                 if plane is not None:
@@ -573,13 +575,20 @@ class BemBody(Body):
     def constraint_positions(self, points: np.ndarray, forces: np.ndarray) -> np.ndarray:
         """World positions the nodes ``points`` end the step at with the forces applied there."""
         cs, f = self._cs, self.state.frame
-        u_c, a_c, alpha_c, _ = self._with_point_forces(points, forces, cs["u"], cs["a_ext"], cs["alpha_ext"], f.R)
+        so, ops = self._so, self._so.operators
+        p_nodes = (forces @ f.R) / self._response.area[points][:, None]
+        u_pts = cs["u"].reshape(-1, 3)[points] + point_displacement(so, points, points, p_nodes)
+        p_c = np.zeros((ops.n_nodes, 3))
+        np.add.at(p_c, points, p_nodes)
+        a_c = cs["a_ext"] + ops.A @ p_c.reshape(-1)
+        alpha_c = cs["alpha_ext"] + ops.C @ p_c.reshape(-1)
         end = f.copy()
         if self.frame_update:
             end.update(self.dt, self._gravity, a_c, alpha_c, self._inertia, self._inertia_inv, self.gyroscopic)
         else:
-            u_c = u_c + self._so.E @ np.concatenate([-(a_c + f.R.T @ self._gravity), -alpha_c])
-        return (cs["x"][points] + u_c.reshape(-1, 3)[points]) @ end.R.T + end.T
+            E = so.E.reshape(-1, 3, 6)[points]
+            u_pts = u_pts + E @ np.concatenate([-(a_c + f.R.T @ self._gravity), -alpha_c])
+        return (cs["x"][points] + u_pts) @ end.R.T + end.T
 
     def constraint_warm(self, points: np.ndarray) -> np.ndarray:
         st = self.state

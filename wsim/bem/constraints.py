@@ -79,3 +79,14 @@ def add_point_displacement(so: StepOperators, nodes: np.ndarray, p: np.ndarray, 
               inputs=[so.H0_inv_Gp, wp.array(nodes.astype(np.int32), dtype=wp.int32, device=d),
                       wp.array(np.ascontiguousarray(p), dtype=wp.vec3d, device=d), out])
     return out.numpy()
+
+
+def point_displacement(so: StepOperators, rows: np.ndarray, nodes: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """(len(rows), 3) displacement W[rows, nodes] p of the (m, 3) frame-axes tractions p on ``nodes``."""
+    d = so.device
+    out = wp.empty(len(rows), dtype=wp.vec3d, device=d)
+    wp.launch(kb.point_rows, dim=len(rows), device=d,
+              inputs=[so.H0_inv_Gp, wp.array(rows.astype(np.int32), dtype=wp.int32, device=d),
+                      wp.array(nodes.astype(np.int32), dtype=wp.int32, device=d),
+                      wp.array(np.ascontiguousarray(p), dtype=wp.vec3d, device=d), out])
+    return out.numpy()
