@@ -116,6 +116,9 @@ class Participant(Protocol):
     def constraint_positions(self, points: np.ndarray, forces: np.ndarray) -> np.ndarray:
         """True end-of-step world positions of ``points`` with world forces (m, 3) [N] applied there."""
 
+    def constraint_nonlinearity(self, points: np.ndarray, forces: np.ndarray) -> float:
+        """An upper bound [m] on how far the true positions of these forces can be from V0 + K f."""
+
     def constraint_warm(self, points: np.ndarray) -> np.ndarray:
         """The forces (m, 3) [N] the points carried last step, to start the solve from (zeros if none)."""
 
@@ -256,6 +259,8 @@ def solve_group(bodies: Sequence[Any], joints: Sequence[tuple[Any, np.ndarray, A
             for k in range(len(sides)):
                 on = np.flatnonzero((side_sign_a[:, side] != 0.0) & (side_body_a[:, side] == k))
                 np.add.at(forces[k], side_point_a[on, side], side_sign_a[on, side, None] * lam[on])
+        if sum(s.body.constraint_nonlinearity(s.points, f) for s, f in zip(sides, forces)) <= 0.5 * tol:
+            break  # the linear model is exact to well within tol: no need for the true positions
         true = [s.body.constraint_positions(s.points, f) if len(s.points) else np.zeros((0, 3))
                 for s, f in zip(sides, forces)]
         value = np.zeros_like(V0)

@@ -590,6 +590,20 @@ class BemBody(Body):
             u_pts = u_pts + E @ np.concatenate([-(a_c + f.R.T @ self._gravity), -alpha_c])
         return (cs["x"][points] + u_pts) @ end.R.T + end.T
 
+    def constraint_nonlinearity(self, points: np.ndarray, forces: np.ndarray) -> float:
+        """Eq. (14) drops the second-order terms of the rotation increment dw = dt R C p: the true
+        rotation exp(dt (w + dw)) differs from (I + dt [dw]x) exp(dt w) by at most
+        dt^2 |dw| (|w| + |dw| / 2) (BCH), times the lever arm (< 2 r_max); the rest is linear."""
+        if not self.frame_update or not len(points):
+            return 0.0
+        f = self.state.frame
+        ops = self._so.operators
+        p_nodes = (forces @ f.R) / self._response.area[points][:, None]
+        C = ops.C.reshape(3, -1, 3)[:, points, :]  # (3, m, 3)
+        dw = self.dt * float(np.linalg.norm(np.einsum("ima,ma->i", C, p_nodes)))
+        omega = float(np.linalg.norm(f.omega))
+        return 2.0 * ops.r_max * self.dt**2 * dw * (omega + 0.5 * dw)
+
     def constraint_warm(self, points: np.ndarray) -> np.ndarray:
         st = self.state
         out = np.zeros((len(points), 3))
