@@ -2,8 +2,8 @@
 
 ``WSIM_TEST_SCENE`` picks the content: "pbd" (a spinning ball hitting the ground and a kinematic
 pusher), "bem" (a spinning BEM ball under a pulsing traction), "eol" (an EoL ball landing on the
-ground), "recon" (a PBD reconstruction), "all" (one body of each method in one World; BEM bodies
-do not collide yet, so it has no colliders).
+ground), "recon" (a PBD reconstruction), "all" (one body of each method in one World, without
+colliders).
 """
 
 from __future__ import annotations
