@@ -14,7 +14,6 @@ authors' bunny, say), stood on its lowest point.
 
 from __future__ import annotations
 
-import numpy as np
 
 import wsim
 from wsim import mesh as wmesh
