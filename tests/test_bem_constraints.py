@@ -317,3 +317,30 @@ def test_constrained_state_round_trips(box_ops):
         world.step()
     assert np.abs(body.points() - first).max() < 1e-12
     assert np.abs(body.contact_impulse - impulse).max() < 1e-12
+
+
+def test_cube_on_a_mesh_collider_rests_and_is_carried(box_ops, device):
+    """A collider mesh instead of a ground plane: the cube rests on a static slab without sinking,
+    and on a slab moving sideways at 0.2 m/s friction (mu = 1) carries it along at the slab's speed."""
+    slab = trimesh.creation.box(extents=(2.0, 0.2, 2.0))
+    for speed in (0.0, 0.2):
+        world = wsim.World(fps=1.0 / DT, device=device, gravity=(0.0, -G, 0.0))
+        if speed:
+            world.add_collider(wsim.MeshCollider(slab, lambda t: _translation((speed * t, -0.1, 0.0)), friction=1.0))
+        else:
+            world.add_collider(wsim.MeshCollider(slab, _translation((0.0, -0.1, 0.0)), friction=1.0))
+        body = world.add(wsim.BemBody(BOX, MAT, DT, operators=box_ops, position=(0.0, 0.1005, 0.0)))
+        for _ in range(150):
+            world.step()
+            assert body.points()[:, 1].min() > -1e-5 * box_ops.r_max - 1e-7
+        v0 = body.points()[:, 0].mean()
+        for _ in range(50):
+            world.step()
+        v = (body.points()[:, 0].mean() - v0) / (50 * DT)
+        assert v == pytest.approx(speed, abs=2e-3)
+
+
+def _translation(offset):
+    m = np.eye(4)
+    m[:3, 3] = offset
+    return m

@@ -531,7 +531,8 @@ class BemBody(Body):
         hit = wp.zeros(n, dtype=wp.int32, device=d)
         wp.launch(kb.collider_points, dim=n, device=d,
                   inputs=[self._surfaces[ci].device_mesh(d).id, wp.array(V, dtype=wp.vec3d, device=d),
-                          wp.mat44d(*np.linalg.inv(M).ravel()), wp.mat44d(*M.ravel()), float(margin), normal, height, hit])
+                          wp.mat44d(*np.linalg.inv(M).ravel()), wp.mat44d(*M.ravel()), float(margin),
+                          float(self._surfaces[ci].extent), normal, height, hit])
         sel = np.flatnonzero((hit.numpy() > 0) & ~held)
         return sel, normal.numpy()[sel], height.numpy()[sel]
 
