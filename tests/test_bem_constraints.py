@@ -81,11 +81,15 @@ def test_cube_rests_on_the_ground_without_sinking_or_drifting(box_ops, device):
         assert body.points()[:, 1].min() > -1e-9
     x1 = body.points()
     assert np.abs(x1 - x0).max() < 1e-8  # neither slides nor sinks
-    # the whole run: momentum changes by gravity and the contact impulse only (to round-off)
+    # at rest: no momentum, and over the rest the contact carries exactly the weight
+    assert np.abs(body.linear_momentum()).max() < 1e-6 * body.mass
+    assert body.kinetic_energy() < 1e-12
+    assert np.abs(body.contact_impulse - J0 - body.mass * np.array([0.0, G, 0.0]) * 200 * DT).max() < 1e-6 * body.mass * G * 200 * DT
+    # the whole run: the frame's momentum changes by gravity and the contact impulse only (to
+    # round-off); the material's differs from it by the drift the pose transfer removes (README)
     gravity = body.mass * np.array([0.0, -G, 0.0]) * body.time
-    assert np.abs(body.linear_momentum() - p_start - body.contact_impulse - gravity).max() < 1e-9 * body.mass * G * body.time
-    # at rest, the contact carries the weight (to 0.01 %)
-    assert (body.contact_impulse - J0)[1] == pytest.approx(body.mass * G * 200 * DT, rel=1e-4)
+    frame_p = body.mass * body.frame.velocity
+    assert np.abs(frame_p - p_start - body.contact_impulse - gravity).max() < 1e-9 * body.mass * G * body.time
 
 
 def test_contact_forces_are_complementary_and_inside_the_friction_cone(box_ops, device):
@@ -207,8 +211,12 @@ def test_joint_holds_two_bodies_together_with_equal_and_opposite_forces(box_ops,
     assert a.steps == b.steps == 60
     assert np.linalg.norm(a.joint_impulse) > 1.0  # the joint did work: a was thrown apart from b
     assert np.abs(a.joint_impulse + b.joint_impulse).max() < 1e-12
-    dp = a.linear_momentum() + b.linear_momentum() - p0 - (a.mass + b.mass) * np.array([0.0, -G, 0.0]) * a.time
-    assert np.abs(dp).max() < 1e-9
+    gravity = (a.mass + b.mass) * np.array([0.0, -G, 0.0]) * a.time
+    # the frames' momentum: exactly (the joint's impulses cancel); the material's (the read-out):
+    # to the drift the pose transfer removes, 1e-4 of the momentum here
+    frames = a.mass * a.frame.velocity + b.mass * b.frame.velocity
+    assert np.abs(frames - p0 - gravity).max() < 1e-9
+    assert np.abs(a.linear_momentum() + b.linear_momentum() - p0 - gravity).max() < 1e-3 * np.linalg.norm(p0)
 
 
 def test_joint_input_errors(box_ops):

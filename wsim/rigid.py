@@ -50,6 +50,22 @@ def rodrigues(phi: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * (k @ k)
 
 
+def rotation_vector(R: np.ndarray) -> np.ndarray:
+    """phi with rodrigues(phi) = R (|phi| <= pi): the inverse of ``rodrigues``."""
+    R = np.asarray(R, dtype=np.float64)
+    axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    s = 0.5 * np.linalg.norm(axis)
+    c = np.clip(0.5 * (np.trace(R) - 1.0), -1.0, 1.0)
+    angle = np.arctan2(s, c)
+    if s < 1e-12:
+        return 0.5 * axis  # small angle: phi ~ vee(R - R^T) / 2
+    if angle > np.pi - 1e-6:  # near pi: the axis from the largest column of R + I
+        M = R + np.eye(3)
+        k = int(np.argmax(np.linalg.norm(M, axis=0)))
+        return angle * M[:, k] / np.linalg.norm(M[:, k])
+    return angle * axis / (2.0 * s)
+
+
 def nearest_rotation(m: np.ndarray) -> np.ndarray:
     """The rotation closest to m in the Frobenius norm (polar factor, det = +1)."""
     u, _, vt = np.linalg.svd(m)

@@ -32,7 +32,7 @@ from wsim import constraints as wc
 from wsim.bem import stepper
 from wsim.bem.constraints import (PointResponse, add_point_displacement, frame_terms, point_displacement,
                                   response_matrix)
-from wsim.rigid import RigidFrame
+from wsim.rigid import RigidFrame, rotation_vector
 from wsim.bem.mass import mass_properties
 from wsim.bem.operators import PRECISIONS, BemOperators, build_operators
 from wsim.bem.surface import prepare_surface
@@ -65,6 +65,10 @@ class BemState:
             fixed and driven points and of the joints so far [N s].
         point_nodes, point_forces: the nodes and world forces [N] of the last constraint solve (its
             warm start).
+        material_velocity, material_omega: (3,) world velocity of the centre of mass and angular
+            velocity of the material over the last step [m/s], [rad/s] (the read-outs'). Equal to
+            the frame's, except on a constrained step, where the pose transfer moves the frame.
+        frame_is_material: the last step left the frame's velocities as the material's.
     """
 
     _ragged: ClassVar[tuple[str, ...]] = ("point_nodes", "point_forces")
@@ -85,6 +89,9 @@ class BemState:
     joint_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
     point_nodes: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     point_forces: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    material_velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    material_omega: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    frame_is_material: bool = True
 
 
 class BemBody(Body):
@@ -292,25 +299,33 @@ class BemBody(Body):
         return wmesh.signed_volume(self._surface.nodes + self.state.u.reshape(-1, 3), self._surface.faces)
 
     def linear_momentum(self) -> np.ndarray:
-        """m T_dot [kg m/s]: the frame carries the body's momentum (the error correction of Sec.
-        3.2.1 keeps the displacement u free of rigid motion, so it adds none)."""
-        return self.mass * self.frame.velocity
+        """m v [kg m/s] with v the material's centre-of-mass velocity over the last step: the frame
+        carries the body's momentum (the error correction of Sec. 3.2.1 keeps the displacement u
+        free of rigid motion, so it adds none). On a free body v is the frame's velocity T_dot; on a
+        constrained step it is the frame's motion after the pose transfer (``BemState``), which
+        the frame's own velocity is not (README, BEM constraints)."""
+        self._require_bound()
+        return self.mass * self.state.material_velocity
 
     def angular_momentum(self, about: Sequence[float] | None = None) -> np.ndarray:
-        """L [kg m^2/s] (world) about the centre of mass, or about the world point ``about``
-        (L + (T - p) x m T_dot); carried by the frame, like the linear momentum."""
-        f = self.frame
-        L = f.L.copy()
+        """L = I_world omega [kg m^2/s] (world) about the centre of mass, or about the world point
+        ``about`` (L + (T - p) x m v), from the material's motion like ``linear_momentum``. On a
+        free body with ``gyroscopic`` this is the frame's integrated L."""
+        self._require_bound()
+        st, f = self.state, self.state.frame
+        L = f.L.copy() if st.frame_is_material else f.R @ self._inertia @ f.R.T @ st.material_omega
         if about is not None:
-            L += np.cross(f.T - as_vec3(about, f"body '{self.name}': about"), self.mass * f.velocity)
+            L += np.cross(f.T - as_vec3(about, f"body '{self.name}': about"), self.linear_momentum())
         return L
 
     def kinetic_energy(self) -> float:
-        """Kinetic energy of the frame's motion, 1/2 m |T_dot|^2 + 1/2 omega . L [J]. The
-        deformation's own kinetic energy is not included: a surface-only method has no interior
-        velocities to integrate it from."""
-        f = self.frame
-        return 0.5 * self.mass * float(f.velocity @ f.velocity) + 0.5 * float(f.omega @ f.L)
+        """Kinetic energy of the rigid motion, 1/2 m |v|^2 + 1/2 omega . L [J] (v, omega as in
+        ``linear_momentum``). The deformation's own kinetic energy is not included: a surface-only
+        method has no interior velocities to integrate it from."""
+        self._require_bound()
+        st = self.state
+        v, w = st.material_velocity, st.material_omega
+        return 0.5 * self.mass * float(v @ v) + 0.5 * float(w @ self.angular_momentum())
 
     # -- loads ------------------------------------------------------------------------------
     def add_traction(self, fn: TractionFn) -> None:
@@ -372,6 +387,8 @@ class BemBody(Body):
         self._b_in = wp.zeros(6, dtype=so.dtype, device="cpu", pinned=pinned)
         if not self.frame_update:
             self._seed_rigid_history()
+        self.state.material_velocity = self.state.frame.velocity.copy()
+        self.state.material_omega = self.state.frame.omega.copy()
         self._failure: tuple[str, str, str] | None = None  # quantity, detail, reason
         self._window_length = max(ops.n_max, 20)  # steps per window of the growth check
 
@@ -749,6 +766,7 @@ class BemBody(Body):
         wp.copy(st.P, self._p, dest_offset=slot * so.pitch, count=n3)
         wp.copy(st.B, self._b_in, dest_offset=slot * 6, count=6)
         if self.frame_update:
+            T_old, R_old = f.T.copy(), f.R.copy()
             f.update(self.dt, self._gravity, b[:3], b[3:], self._inertia, self._inertia_inv, self.gyroscopic)
             if transfer is not None:  # x + u = R_e (x + u'' - c0) + c0 + t: every point stays put
                 drift, R_e = transfer
@@ -760,6 +778,12 @@ class BemBody(Body):
                 # on a held or resting body the frame's velocity is not the material's (README).
                 f.T = f.T + f.R @ (c0 + drift - R_e @ c0)
                 f.R = f.R @ R_e
+                st.material_velocity = (f.T - T_old) / self.dt
+                st.material_omega = rotation_vector(f.R @ R_old.T) / self.dt
+                st.frame_is_material = False
+            else:
+                st.material_velocity, st.material_omega = f.velocity.copy(), f.omega.copy()
+                st.frame_is_material = True
             if st.steps % 100 == 99:
                 f.reorthonormalize()
         st.u = u
