@@ -22,10 +22,22 @@ from typing import Any
 import warp as wp
 
 
+@wp.func
+def w_block(W: wp.array2d(dtype=Any), a: int, b: int) -> wp.mat33d:
+    """The 3 x 3 block of W at rows 3a.., columns 3b.. in float64."""
+    r = 3 * a
+    c = 3 * b
+    return wp.mat33d(
+        wp.float64(W[r, c]), wp.float64(W[r, c + 1]), wp.float64(W[r, c + 2]),
+        wp.float64(W[r + 1, c]), wp.float64(W[r + 1, c + 1]), wp.float64(W[r + 1, c + 2]),
+        wp.float64(W[r + 2, c]), wp.float64(W[r + 2, c + 1]), wp.float64(W[r + 2, c + 2]))
+
+
 @wp.kernel
 def response_blocks(
     W: wp.array2d(dtype=Any),
-    nodes: wp.array(dtype=int),
+    ids: wp.array(dtype=wp.vec3i),
+    weights: wp.array(dtype=wp.vec3d),
     Rk: wp.mat33d,
     R1: wp.mat33d,
     inv_area: wp.array(dtype=wp.float64),
@@ -35,21 +47,31 @@ def response_blocks(
     inv_mass: wp.float64,
     K: wp.array2d(dtype=wp.float64),
 ):
-    """Block K_ij = R*_k W_ij R_{k-1}^T / a_j + lin_a_i / m + lin_c_i R_{k-1} (C_j / a_j) R_{k-1}^T of
-    the points ``nodes``; launch with dim = (m, m). With the frame update, lin_a_i = dt^2 I and
-    lin_c_i = -dt^2 [r_i]x (module docstring); without it (a fixed frame, Eq. 9 with a = alpha = 0)
-    they remove the D_0 A + Q_0 C part of G': lin_a_i = -R E_D,i R^T, lin_c_i = -R E_Q,i R^T with
-    E = [H_0^-1 D_0, H_0^-1 Q_0]."""
+    """Block K_ij of points i, j, each a weighted sum of up to three nodes (``wsim.constraints.PointRefs``;
+    a node has weights (1, 0, 0)): with the force on point j spread to its nodes n_jb by w_jb,
+
+        K_ij = sum_a sum_b w_ia w_jb R*_k W(n_ia, n_jb) R_{k-1}^T / a(n_jb)
+               + lin_a_i / m + lin_c_i R_{k-1} (sum_b w_jb C(n_jb) / a(n_jb)) R_{k-1}^T
+
+    (the weights of a point sum to 1). With the frame update lin_a_i = dt^2 I and
+    lin_c_i = -dt^2 [r_i]x (module docstring, r_i the point's lever arm); without it (a fixed frame,
+    Eq. 9 with a = alpha = 0) they remove the D_0 A + Q_0 C part of G': lin_a_i = -R E_D,i R^T,
+    lin_c_i = -R E_Q,i R^T with E = [H_0^-1 D_0, H_0^-1 Q_0] at the point. Launch with dim = (m, m)."""
     i, j = wp.tid()
-    a = 3 * nodes[i]
-    nj = nodes[j]
-    b = 3 * nj
-    Wij = wp.mat33d(
-        wp.float64(W[a, b]), wp.float64(W[a, b + 1]), wp.float64(W[a, b + 2]),
-        wp.float64(W[a + 1, b]), wp.float64(W[a + 1, b + 1]), wp.float64(W[a + 1, b + 2]),
-        wp.float64(W[a + 2, b]), wp.float64(W[a + 2, b + 1]), wp.float64(W[a + 2, b + 2]))
-    blk = (Rk * Wij * wp.transpose(R1)) * inv_area[nj] + lin_a[i] * inv_mass \
-        + lin_c[i] * (R1 * C_over_a[nj] * wp.transpose(R1))
+    wi = weights[i]
+    wj = weights[j]
+    ni = ids[i]
+    nj = ids[j]
+    Wsum = wp.mat33d()
+    Csum = wp.mat33d()
+    for b in range(3):
+        if wj[b] != wp.float64(0.0):
+            col = nj[b]
+            Csum += wj[b] * C_over_a[col]
+            for a in range(3):
+                if wi[a] != wp.float64(0.0):
+                    Wsum += (wi[a] * wj[b] * inv_area[col]) * w_block(W, ni[a], col)
+    blk = Rk * Wsum * wp.transpose(R1) + lin_a[i] * inv_mass + lin_c[i] * (R1 * Csum * wp.transpose(R1))
     for p in range(3):
         for q in range(3):
             K[3 * i + p, 3 * j + q] = blk[p, q]
@@ -130,3 +152,29 @@ def point_rows(
             s[1] += wp.float64(W[a + 1, b + q]) * pj[q]
             s[2] += wp.float64(W[a + 2, b + q]) * pj[q]
     out[i] = s
+
+
+@wp.kernel
+def corner_points(
+    body: wp.uint64,
+    corners: wp.array(dtype=wp.vec3d),
+    reach: float,
+    face: wp.array(dtype=int),
+    bary: wp.array(dtype=wp.vec3d),
+    normal: wp.array(dtype=wp.vec3d),
+):
+    """Collider vertices inside the body's predicted surface (a closed mesh of its nodes): the
+    nearest face (-1: outside), the barycentric weights of the nearest point on it, and the
+    face's outward normal. Warp's barycentric (u, v) weight the face's first two corners."""
+    i = wp.tid()
+    c = corners[i]
+    p = wp.vec3(float(c[0]), float(c[1]), float(c[2]))
+    q = wp.mesh_query_point_sign_normal(body, p, reach)
+    face[i] = -1
+    if q.result and q.sign < 0.0:
+        face[i] = q.face
+        u = wp.float64(q.u)
+        v = wp.float64(q.v)
+        bary[i] = wp.vec3d(u, v, wp.float64(1.0) - u - v)
+        nrm = wp.mesh_eval_face_normal(body, q.face)
+        normal[i] = wp.vec3d(wp.float64(nrm[0]), wp.float64(nrm[1]), wp.float64(nrm[2]))

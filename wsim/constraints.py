@@ -57,6 +57,57 @@ class PointSet:
 
 
 @dataclass(frozen=True)
+class PointRefs:
+    """Points of one body as weighted sums of up to three of its nodes: a node is (n, n, n) with
+    weights (1, 0, 0); a point inside a face is the face's nodes with barycentric weights (a
+    collider corner pressing on the face). Forces spread to the nodes with the same weights.
+
+    Attributes:
+        ids: (m, 3) int64 node indices.  w: (m, 3) float64 weights (each row sums to 1).
+    """
+
+    ids: np.ndarray
+    w: np.ndarray
+
+    @staticmethod
+    def nodes(nodes: np.ndarray) -> PointRefs:
+        n = np.asarray(nodes, dtype=np.int64).reshape(-1)
+        w = np.zeros((len(n), 3))
+        w[:, 0] = 1.0
+        return PointRefs(np.repeat(n[:, None], 3, axis=1), w)
+
+    @staticmethod
+    def empty() -> PointRefs:
+        return PointRefs(np.zeros((0, 3), dtype=np.int64), np.zeros((0, 3)))
+
+    def __len__(self) -> int:
+        return int(self.ids.shape[0])
+
+    def __getitem__(self, index) -> PointRefs:
+        return PointRefs(self.ids[index], self.w[index])
+
+    def concat(self, other: PointRefs) -> PointRefs:
+        return PointRefs(np.concatenate([self.ids, other.ids]), np.concatenate([self.w, other.w]))
+
+    @property
+    def is_node(self) -> np.ndarray:
+        """(m,) whether each point is a plain node."""
+        return self.w[:, 0] == 1.0
+
+    def positions(self, V: np.ndarray) -> np.ndarray:
+        """(m, 3) positions from the nodes' positions V (N, 3)."""
+        return np.einsum("mk,mkd->md", self.w, V[self.ids])
+
+    def spread(self, forces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(nodes, node forces): the distinct nodes the points touch and the forces (k, 3) the
+        point forces (m, 3) put on them."""
+        used, inverse = np.unique(self.ids, return_inverse=True)
+        out = np.zeros((len(used), 3))
+        np.add.at(out, inverse.reshape(self.ids.shape), self.w[:, :, None] * forces[:, None, :])
+        return used, out
+
+
+@dataclass(frozen=True)
 class SolveRecord:
     """One constraint solve: the step, its points (contacts among them), the Gauss-Seidel sweeps,
     the last sweep's residual [m] (the largest position change it made) and whether it reached the
@@ -103,26 +154,26 @@ class Participant(Protocol):
     constraint_iterations: int
     failed: bool
 
-    def joint_points(self, vertex_ids: np.ndarray) -> np.ndarray:
-        """The body's points (its own indices) that a joint holds at these mesh vertices."""
+    def joint_points(self, vertex_ids: np.ndarray) -> PointRefs:
+        """The points a joint holds at these mesh vertices."""
 
-    def constraint_begin(self) -> tuple[np.ndarray, PointSet, np.ndarray]:
+    def constraint_begin(self) -> tuple[PointRefs, PointSet, np.ndarray]:
         """Predict the coming step; returns (points, constraints on them, predicted world positions of
-        every point of the body (N, 3)). Points are the body's own indices (BEM: nodes)."""
+        every node of the body (N, 3))."""
 
-    def constraint_response(self, points: np.ndarray) -> wp.array:
+    def constraint_response(self, points: PointRefs) -> wp.array:
         """K (3m, 3m) [m/N] of ``points`` on the device: V = V0 + K f."""
 
-    def constraint_positions(self, points: np.ndarray, forces: np.ndarray) -> np.ndarray:
+    def constraint_positions(self, points: PointRefs, forces: np.ndarray) -> np.ndarray:
         """True end-of-step world positions of ``points`` with world forces (m, 3) [N] applied there."""
 
-    def constraint_nonlinearity(self, points: np.ndarray, forces: np.ndarray) -> float:
+    def constraint_nonlinearity(self, points: PointRefs, forces: np.ndarray) -> float:
         """An upper bound [m] on how far the true positions of these forces can be from V0 + K f."""
 
-    def constraint_warm(self, points: np.ndarray) -> np.ndarray:
+    def constraint_warm(self, points: PointRefs) -> np.ndarray:
         """The forces (m, 3) [N] the points carried last step, to start the solve from (zeros if none)."""
 
-    def constraint_end(self, points: np.ndarray, forces: np.ndarray, kind: np.ndarray, record: SolveRecord) -> None:
+    def constraint_end(self, points: PointRefs, forces: np.ndarray, kind: np.ndarray, record: SolveRecord) -> None:
         """Apply the forces and finish the step; ``kind`` (m,) says what each force came from:
         CONTACT, FIXED or JOINT (for the body's impulse read-outs)."""
 
@@ -162,13 +213,13 @@ class _Side:
     """One participant's share of a group solve."""
 
     body: Any
-    own: np.ndarray  # own constrained points
+    own: PointRefs  # own constrained points
     own_set: PointSet
-    V: np.ndarray  # predicted positions of all its points
-    points: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # own + joint points
+    V: np.ndarray  # predicted positions of all its nodes
+    points: PointRefs = field(default_factory=PointRefs.empty)  # own + joint points
 
 
-def solve_group(bodies: Sequence[Any], joints: Sequence[tuple[Any, np.ndarray, Any, np.ndarray]], device: wp.Device,
+def solve_group(bodies: Sequence[Any], joints: Sequence[tuple[Any, PointRefs, Any, PointRefs]], device: wp.Device,
                 tol: float, max_iter: int, step: int, refinements: int = 3) -> None:
     """One constrained step of ``bodies`` (participants) coupled by ``joints`` ((body_a, points_a,
     body_b, points_b): the bodies' own point indices). See the module docstring.
@@ -187,12 +238,12 @@ def solve_group(bodies: Sequence[Any], joints: Sequence[tuple[Any, np.ndarray, A
     V0c, kinds, normal, height, target, mu = [], [], [], [], [], []
     for k, s in enumerate(sides):
         n_own = len(s.own)
-        s.points = s.own.astype(np.int64)
+        s.points = s.own
         for i in range(n_own):
             side_body.append((k, 0))
             side_point.append((i, 0))
             side_sign.append((1.0, 0.0))
-        V0c.append(s.V[s.own])
+        V0c.append(s.own.positions(s.V))
         kinds.append(s.own_set.kind)
         normal.append(s.own_set.normal)
         height.append(s.own_set.height)
@@ -203,13 +254,13 @@ def solve_group(bodies: Sequence[Any], joints: Sequence[tuple[Any, np.ndarray, A
         sa, sb = sides[ka], sides[kb]
         ia = len(sa.points) + np.arange(len(pa))
         ib = len(sb.points) + np.arange(len(pb))
-        sa.points = np.concatenate([sa.points, pa])
-        sb.points = np.concatenate([sb.points, pb])
+        sa.points = sa.points.concat(pa)
+        sb.points = sb.points.concat(pb)
         for i, j in zip(ia, ib):
             side_body.append((ka, kb))
             side_point.append((int(i), int(j)))
             side_sign.append((1.0, -1.0))
-        V0c.append(sa.V[pa] - sb.V[pb])
+        V0c.append(pa.positions(sa.V) - pb.positions(sb.V))
         m = len(pa)
         kinds.append(np.full(m, FIXED, dtype=np.int32))
         normal.append(np.zeros((m, 3)))

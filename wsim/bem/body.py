@@ -473,11 +473,11 @@ class BemBody(Body):
         self._fixed[handle] = (ids, nodes, target, slot[self._surface.vertex[nodes]])
         return handle
 
-    def joint_points(self, vertex_ids: np.ndarray) -> np.ndarray:
+    def joint_points(self, vertex_ids: np.ndarray) -> wc.PointRefs:
         """The node a joint holds at each mesh vertex (its first double-node copy)."""
         first = np.full(len(self._node_count), -1)
         first[self._surface.vertex[::-1]] = np.arange(self._surface.n_nodes)[::-1]
-        return first[np.asarray(vertex_ids)].astype(np.int64)
+        return wc.PointRefs.nodes(first[np.asarray(vertex_ids)])
 
     def release(self, handle: int) -> None:
         """Stop holding the vertices of a ``fix`` handle."""
@@ -485,13 +485,18 @@ class BemBody(Body):
             raise InvalidParameter(f"body '{self.name}': no fixed points with handle {handle!r}")
         del self._fixed[handle]
 
-    def _with_point_forces(self, nodes: np.ndarray, forces: np.ndarray, u: np.ndarray, a_ext: np.ndarray,
+    def _node_tractions(self, points: wc.PointRefs, forces: np.ndarray, R1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(nodes, tractions (k, 3) in frame axes of the step start) of world point forces [N]."""
+        nodes, f_nodes = points.spread(forces)
+        return nodes, (f_nodes @ R1) / self._response.area[nodes][:, None]
+
+    def _with_point_forces(self, points: wc.PointRefs, forces: np.ndarray, u: np.ndarray, a_ext: np.ndarray,
                            alpha_ext: np.ndarray, R1: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """u, a_ext, alpha_ext with world point forces [N] on ``nodes`` added as tractions (frame axes
-        of the step start, R1), and the (3N,) tractions themselves."""
+        """u, a_ext, alpha_ext with world point forces [N] at ``points`` added as tractions (frame
+        axes of the step start, R1), and the (3N,) tractions themselves."""
         so = self._so
         ops = so.operators
-        p_nodes = (forces @ R1) / self._response.area[nodes][:, None]
+        nodes, p_nodes = self._node_tractions(points, forces, R1)
         u = add_point_displacement(so, nodes, p_nodes, u)
         p_c = np.zeros((ops.n_nodes, 3))
         np.add.at(p_c, nodes, p_nodes)
@@ -507,8 +512,9 @@ class BemBody(Body):
             raise InvalidParameter(f"body '{self.name}': fixed-point targets at t = {t:g} s are not finite")
         return a
 
-    def _constraint_points(self, V: np.ndarray, X_prev: np.ndarray, t: float) -> tuple[np.ndarray, wc.PointSet]:
-        """The nodes and constraints of this step: fixed and driven points, then contacts."""
+    def _constraint_points(self, V: np.ndarray, X_prev: np.ndarray, t: float) -> tuple[wc.PointRefs, wc.PointSet]:
+        """The points and constraints of this step: fixed and driven nodes, nodes in contact, then
+        collider corners pressing on faces."""
         points = wc.PointSet()
         nodes = []
         held = np.zeros(len(V), dtype=bool)
@@ -530,11 +536,56 @@ class BemBody(Body):
                     sel, normal, height = self._mesh_points(ci, V, t, margin, held)
                     G, g = surfaces.velocity(ci, t - self.dt, max(1e-6, 1e-3 * self.dt))
                     target = X_prev[sel] + self.dt * (X_prev[sel] @ G.T + g)  # carried by the collider
+                mu = col.friction if self.friction is None else max(col.friction, self.friction)
                 if len(sel):
-                    mu = col.friction if self.friction is None else max(col.friction, self.friction)
                     points.add(wc.CONTACT, normal, height, target, mu)
                     nodes.append(sel)
-        return (np.concatenate(nodes) if nodes else np.zeros(0, dtype=np.int64)), points
+        refs = wc.PointRefs.nodes(np.concatenate(nodes) if nodes else np.zeros(0, dtype=np.int64))
+        if surfaces is not None:
+            for ci, col in enumerate(surfaces):
+                if surfaces.plane(ci) is None:
+                    corners = self._corner_points(ci, V, X_prev, t)
+                    if corners is not None:
+                        mu = col.friction if self.friction is None else max(col.friction, self.friction)
+                        face_refs, normal, height, target = corners
+                        points.add(wc.CONTACT, normal, height, target, mu)
+                        refs = refs.concat(face_refs)
+        return refs, points
+
+    def _corner_points(self, ci: int, V: np.ndarray, X_prev: np.ndarray, t: float):
+        """Vertices of collider mesh ci inside the body's predicted surface: each presses on the
+        nearest point of a face, which must retreat behind the vertex along the face's inward normal
+        (n . x >= n . c with n = -n_face). None when no vertex is inside."""
+        from wsim.kernels import bem_constraints as kb
+
+        d = self._device
+        col = self._surfaces[ci]
+        M = self._surfaces.matrix(ci, t)
+        c = col.vertices @ M[:3, :3].T + M[:3, 3]
+        lo, hi = V.min(axis=0), V.max(axis=0)
+        near = np.flatnonzero(np.all((c >= lo) & (c <= hi), axis=1))  # inside the body's box
+        if not len(near):
+            return None
+        faces = self._surface.faces
+        body = wp.Mesh(points=wp.array(V.astype(np.float32), dtype=wp.vec3, device=d),
+                       indices=wp.array(faces.astype(np.int32).ravel(), dtype=wp.int32, device=d))
+        k = len(near)
+        face = wp.empty(k, dtype=wp.int32, device=d)
+        bary = wp.zeros(k, dtype=wp.vec3d, device=d)
+        nrm = wp.zeros(k, dtype=wp.vec3d, device=d)
+        wp.launch(kb.corner_points, dim=k, device=d,
+                  inputs=[body.id, wp.array(c[near], dtype=wp.vec3d, device=d), float(np.linalg.norm(hi - lo)),
+                          face, bary, nrm])
+        f = face.numpy()
+        inside = np.flatnonzero(f >= 0)
+        if not len(inside):
+            return None
+        refs = wc.PointRefs(faces[f[inside]].astype(np.int64), bary.numpy()[inside])
+        n = -nrm.numpy()[inside]
+        corner = c[near[inside]]
+        G, g = self._surfaces.velocity(ci, t - self.dt, max(1e-6, 1e-3 * self.dt))
+        prev = refs.positions(X_prev)
+        return refs, n, np.einsum("ij,ij->i", n, corner), prev + self.dt * (prev @ G.T + g)
 
     def _mesh_points(self, ci: int, V: np.ndarray, t: float, margin: float,
                      held: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -554,9 +605,9 @@ class BemBody(Body):
         return sel, normal.numpy()[sel], height.numpy()[sel]
 
     # -- the constraint seam (``wsim.constraints.Participant``) --------------------------------------
-    def constraint_begin(self) -> tuple[np.ndarray, wc.PointSet, np.ndarray]:
+    def constraint_begin(self) -> tuple[wc.PointRefs, wc.PointSet, np.ndarray]:
         """Predict the coming step (history, loads, Eq. 12 and the frame update without point forces);
-        returns this body's held and contacting nodes, their constraints and every node's predicted
+        returns this body's held and contacting points, their constraints and every node's predicted
         world position (see ``wsim.constraints``)."""
         u, a_ext, alpha_ext = self.unconstrained_solve()
         st, so = self.state, self._so
@@ -574,41 +625,44 @@ class BemBody(Body):
         lever = (x + u_pos.reshape(-1, 3)) @ pred.R.T
         V = lever + pred.T
         X_prev = (x + st.u.reshape(-1, 3)) @ f.R.T + f.T
-        nodes, points = self._constraint_points(V, X_prev, t)
-        self._cs = dict(u=u, a_ext=a_ext, alpha_ext=alpha_ext, lever=lever, x=x, pred_R=pred.R, t=t)
         if self._response is None:
             self._response = PointResponse.build(so)
+        refs, points = self._constraint_points(V, X_prev, t)
+        self._cs = dict(u=u, a_ext=a_ext, alpha_ext=alpha_ext, lever=lever, x=x, pred_R=pred.R, t=t)
         self._tick("collision", t0)
-        return nodes.astype(np.int64), points, V
+        return refs, points, V
 
-    def constraint_response(self, points: np.ndarray) -> wp.array:
-        """K (3m, 3m) of Eq. (14) for the nodes ``points`` (``wsim.bem.constraints``)."""
+    def constraint_response(self, points: wc.PointRefs) -> wp.array:
+        """K (3m, 3m) of Eq. (14) for ``points`` (``wsim.bem.constraints``)."""
         t0 = time.perf_counter()
         cs, f = self._cs, self.state.frame
-        lin_a, lin_c = frame_terms(self._so, points, cs["lever"][points], f.R, self.dt, self.frame_update)
+        lin_a, lin_c = frame_terms(self._so, points, points.positions(cs["lever"]), f.R, self.dt, self.frame_update)
         K = response_matrix(self._so, self._response, points, cs["pred_R"], f.R, lin_a, lin_c)
         self._tick("constraints", t0)
         return K
 
-    def constraint_positions(self, points: np.ndarray, forces: np.ndarray) -> np.ndarray:
-        """World positions the nodes ``points`` end the step at with the forces applied there."""
+    def constraint_positions(self, points: wc.PointRefs, forces: np.ndarray) -> np.ndarray:
+        """World positions ``points`` end the step at with the forces applied there."""
         cs, f = self._cs, self.state.frame
         so, ops = self._so, self._so.operators
-        p_nodes = (forces @ f.R) / self._response.area[points][:, None]
-        u_pts = cs["u"].reshape(-1, 3)[points] + point_displacement(so, points, points, p_nodes)
+        nodes, p_nodes = self._node_tractions(points, forces, f.R)
+        touched = np.unique(points.ids)
+        u_t = cs["u"].reshape(-1, 3)[touched] + point_displacement(so, touched, nodes, p_nodes)
         p_c = np.zeros((ops.n_nodes, 3))
-        np.add.at(p_c, points, p_nodes)
+        p_c[nodes] = p_nodes
         a_c = cs["a_ext"] + ops.A @ p_c.reshape(-1)
         alpha_c = cs["alpha_ext"] + ops.C @ p_c.reshape(-1)
         end = f.copy()
         if self.frame_update:
             end.update(self.dt, self._gravity, a_c, alpha_c, self._inertia, self._inertia_inv, self.gyroscopic)
         else:
-            E = so.E.reshape(-1, 3, 6)[points]
-            u_pts = u_pts + E @ np.concatenate([-(a_c + f.R.T @ self._gravity), -alpha_c])
-        return (cs["x"][points] + u_pts) @ end.R.T + end.T
+            E = so.E.reshape(-1, 3, 6)[touched]
+            u_t = u_t + E @ np.concatenate([-(a_c + f.R.T @ self._gravity), -alpha_c])
+        V = np.zeros((ops.n_nodes, 3))
+        V[touched] = (cs["x"][touched] + u_t) @ end.R.T + end.T
+        return points.positions(V)
 
-    def constraint_nonlinearity(self, points: np.ndarray, forces: np.ndarray) -> float:
+    def constraint_nonlinearity(self, points: wc.PointRefs, forces: np.ndarray) -> float:
         """Eq. (14) drops the second-order terms of the rotation increment dw = dt R C p: the true
         rotation exp(dt (w + dw)) differs from (I + dt [dw]x) exp(dt w) by at most
         dt^2 |dw| (|w| + |dw| / 2) (BCH), times the lever arm (< 2 r_max); the rest is linear."""
@@ -616,23 +670,24 @@ class BemBody(Body):
             return 0.0
         f = self.state.frame
         ops = self._so.operators
-        p_nodes = (forces @ f.R) / self._response.area[points][:, None]
-        C = ops.C.reshape(3, -1, 3)[:, points, :]  # (3, m, 3)
+        nodes, p_nodes = self._node_tractions(points, forces, f.R)
+        C = ops.C.reshape(3, -1, 3)[:, nodes, :]  # (3, k, 3)
         dw = self.dt * float(np.linalg.norm(np.einsum("ima,ma->i", C, p_nodes)))
         omega = float(np.linalg.norm(f.omega))
         return 2.0 * ops.r_max * self.dt**2 * dw * (omega + 0.5 * dw)
 
-    def constraint_warm(self, points: np.ndarray) -> np.ndarray:
+    def constraint_warm(self, points: wc.PointRefs) -> np.ndarray:
+        """Last step's forces of the nodes among ``points`` (points on faces start from zero)."""
         st = self.state
         out = np.zeros((len(points), 3))
         if len(st.point_nodes):
             last = np.full(self._so.operators.n_nodes, -1)
             last[st.point_nodes] = np.arange(len(st.point_nodes))
-            j = last[points]
+            j = np.where(points.is_node, last[points.ids[:, 0]], -1)
             out[j >= 0] = st.point_forces[j[j >= 0]]
         return out
 
-    def constraint_end(self, points: np.ndarray, forces: np.ndarray, kind: np.ndarray,
+    def constraint_end(self, points: wc.PointRefs, forces: np.ndarray, kind: np.ndarray,
                        record: wc.SolveRecord | None) -> None:
         """Apply the point forces as tractions and finish the step (``_finish_step``)."""
         t0 = time.perf_counter()
@@ -647,7 +702,9 @@ class BemBody(Body):
             self._loaded_now = True
             for k, attr in ((wc.CONTACT, "contact_impulse"), (wc.FIXED, "fixed_impulse"), (wc.JOINT, "joint_impulse")):
                 setattr(st, attr, getattr(st, attr) + self.dt * forces[kind == k].sum(axis=0))
-        st.point_nodes, st.point_forces = points.astype(np.int64), np.asarray(forces, dtype=np.float64).reshape(-1, 3)
+        node = points.is_node
+        st.point_nodes = points.ids[node, 0].astype(np.int64)
+        st.point_forces = np.asarray(forces, dtype=np.float64).reshape(-1, 3)[node]
         if record is not None:
             self.constraint_history.append(record)
             if not record.converged:

@@ -38,28 +38,29 @@ class PointResponse:
                    C_over_a=wp.array(np.ascontiguousarray(C), dtype=wp.mat33d, device=so.device))
 
 
-def response_matrix(so: StepOperators, pr: PointResponse, nodes: np.ndarray, Rk: np.ndarray, R1: np.ndarray,
+def response_matrix(so: StepOperators, pr: PointResponse, points, Rk: np.ndarray, R1: np.ndarray,
                     lin_a: np.ndarray, lin_c: np.ndarray) -> wp.array:
-    """K (3m, 3m) [m/N] of the m ``nodes`` (float64, on the device); lin_a, lin_c (m, 3, 3) as in
-    ``response_blocks`` (``frame_terms``)."""
+    """K (3m, 3m) [m/N] of the m ``points`` (``wsim.constraints.PointRefs``; float64, on the device);
+    lin_a, lin_c (m, 3, 3) as in ``response_blocks`` (``frame_terms``)."""
     d = so.device
-    m = len(nodes)
+    m = len(points)
     K = wp.empty((3 * m, 3 * m), dtype=wp.float64, device=d)
 
     def mats(a: np.ndarray) -> wp.array:
         return wp.array(np.ascontiguousarray(a, dtype=np.float64), dtype=wp.mat33d, device=d)
 
     wp.launch(kb.response_blocks, dim=(m, m), device=d,
-              inputs=[so.H0_inv_Gp, wp.array(nodes.astype(np.int32), dtype=wp.int32, device=d),
+              inputs=[so.H0_inv_Gp, wp.array(points.ids.astype(np.int32), dtype=wp.vec3i, device=d),
+                      wp.array(points.w, dtype=wp.vec3d, device=d),
                       wp.mat33d(*Rk.ravel()), wp.mat33d(*R1.ravel()), pr.inv_area, pr.C_over_a, mats(lin_a),
                       mats(lin_c), wp.float64(1.0 / so.operators.mass), K])
     return K
 
 
-def frame_terms(so: StepOperators, nodes: np.ndarray, lever: np.ndarray, R: np.ndarray, dt: float,
+def frame_terms(so: StepOperators, points, lever: np.ndarray, R: np.ndarray, dt: float,
                 frame_update: bool) -> tuple[np.ndarray, np.ndarray]:
-    """(lin_a, lin_c) of ``response_blocks`` for the points ``nodes`` with world lever arms ``lever``."""
-    m = len(nodes)
+    """(lin_a, lin_c) of ``response_blocks`` for ``points`` with world lever arms ``lever`` (m, 3)."""
+    m = len(points)
     if frame_update:
         lin_a = np.broadcast_to(dt * dt * np.eye(3), (m, 3, 3))
         r = lever
@@ -67,7 +68,7 @@ def frame_terms(so: StepOperators, nodes: np.ndarray, lever: np.ndarray, R: np.n
         rx[:, 0, 1], rx[:, 0, 2], rx[:, 1, 2] = -r[:, 2], r[:, 1], -r[:, 0]
         rx[:, 1, 0], rx[:, 2, 0], rx[:, 2, 1] = r[:, 2], -r[:, 1], r[:, 0]
         return lin_a, -dt * dt * rx
-    E = so.E.reshape(-1, 3, 6)[nodes]  # (m, 3, 6)
+    E = np.einsum("mk,mkab->mab", points.w, so.E.reshape(-1, 3, 6)[points.ids])  # (m, 3, 6) at the points
     return -R @ E[:, :, :3] @ R.T, -R @ E[:, :, 3:] @ R.T
 
 
