@@ -46,8 +46,9 @@ def response_blocks(
     lin_c: wp.array(dtype=wp.mat33d),
     inv_mass: wp.float64,
     K: wp.array2d(dtype=wp.float64),
+    Kt: wp.array2d(dtype=wp.float64),
 ):
-    """Block K_ij of points i, j, each a weighted sum of up to three nodes (``wsim.constraints.PointRefs``;
+    """Block K_ij (and K^T for ``wsim.kernels.pgs.pgs_block``) of points i, j, each a weighted sum of up to three nodes (``wsim.constraints.PointRefs``;
     a node has weights (1, 0, 0)): with the force on point j spread to its nodes n_jb by w_jb,
 
         K_ij = sum_a sum_b w_ia w_jb R*_k W(n_ia, n_jb) R_{k-1}^T / a(n_jb)
@@ -75,6 +76,7 @@ def response_blocks(
     for p in range(3):
         for q in range(3):
             K[3 * i + p, 3 * j + q] = blk[p, q]
+            Kt[3 * j + q, 3 * i + p] = blk[p, q]
 
 
 @wp.kernel

@@ -632,8 +632,8 @@ class BemBody(Body):
         self._tick("collision", t0)
         return refs, points, V
 
-    def constraint_response(self, points: wc.PointRefs) -> wp.array:
-        """K (3m, 3m) of Eq. (14) for ``points`` (``wsim.bem.constraints``)."""
+    def constraint_response(self, points: wc.PointRefs) -> tuple[wp.array, wp.array]:
+        """K (3m, 3m) of Eq. (14) for ``points`` and its transpose (``wsim.bem.constraints``)."""
         t0 = time.perf_counter()
         cs, f = self._cs, self.state.frame
         lin_a, lin_c = frame_terms(self._so, points, points.positions(cs["lever"]), f.R, self.dt, self.frame_update)

@@ -39,12 +39,13 @@ class PointResponse:
 
 
 def response_matrix(so: StepOperators, pr: PointResponse, points, Rk: np.ndarray, R1: np.ndarray,
-                    lin_a: np.ndarray, lin_c: np.ndarray) -> wp.array:
-    """K (3m, 3m) [m/N] of the m ``points`` (``wsim.constraints.PointRefs``; float64, on the device);
-    lin_a, lin_c (m, 3, 3) as in ``response_blocks`` (``frame_terms``)."""
+                    lin_a: np.ndarray, lin_c: np.ndarray) -> tuple[wp.array, wp.array]:
+    """K (3m, 3m) [m/N] of the m ``points`` (``wsim.constraints.PointRefs``; float64, on the device)
+    and its transpose; lin_a, lin_c (m, 3, 3) as in ``response_blocks`` (``frame_terms``)."""
     d = so.device
     m = len(points)
     K = wp.empty((3 * m, 3 * m), dtype=wp.float64, device=d)
+    Kt = wp.empty((3 * m, 3 * m), dtype=wp.float64, device=d)
 
     def mats(a: np.ndarray) -> wp.array:
         return wp.array(np.ascontiguousarray(a, dtype=np.float64), dtype=wp.mat33d, device=d)
@@ -53,8 +54,8 @@ def response_matrix(so: StepOperators, pr: PointResponse, points, Rk: np.ndarray
               inputs=[so.H0_inv_Gp, wp.array(points.ids.astype(np.int32), dtype=wp.vec3i, device=d),
                       wp.array(points.w, dtype=wp.vec3d, device=d),
                       wp.mat33d(*Rk.ravel()), wp.mat33d(*R1.ravel()), pr.inv_area, pr.C_over_a, mats(lin_a),
-                      mats(lin_c), wp.float64(1.0 / so.operators.mass), K])
-    return K
+                      mats(lin_c), wp.float64(1.0 / so.operators.mass), K, Kt])
+    return K, Kt
 
 
 def frame_terms(so: StepOperators, points, lever: np.ndarray, R: np.ndarray, dt: float,
