@@ -108,6 +108,15 @@ def contact_update(B: wp.mat33d, V: wp.vec3d, f: wp.vec3d, n: wp.vec3d, height: 
     return fn_new * n + g1 * t1 + g2 * t2
 
 
+@wp.func
+def point_update(B: wp.mat33d, V: wp.vec3d, f: wp.vec3d, kind: int, n: wp.vec3d, height: wp.float64,
+                 target: wp.vec3d, mu: wp.float64) -> wp.vec3d:
+    """The new force of one point given its current position V and diagonal block B (module docstring)."""
+    if kind == FIXED:
+        return f + wp.inverse(B) * (target - V)
+    return contact_update(B, V, f, n, height, target, mu)
+
+
 @wp.kernel
 def pgs_points(
     K: wp.array2d(dtype=wp.float64),
@@ -136,11 +145,7 @@ def pgs_points(
                 V = V0[i] + response_times(K, f, i)
                 B = diagonal_block(K, i)
                 fi = f[i]
-                new = fi
-                if kind[i] == FIXED:
-                    new = fi + wp.inverse(B) * (target[i] - V)
-                else:
-                    new = contact_update(B, V, fi, normal[i], height[i], target[i], mu[i])
+                new = point_update(B, V, fi, kind[i], normal[i], height[i], target[i], mu[i])
                 res = wp.max(res, wp.length(B * (new - fi)))
                 f[i] = new
             sweeps = it + 1
@@ -250,11 +255,7 @@ def pgs_block(
                 if lane == owner:
                     B = diagonal_block(K, i)
                     fi = f[i]
-                    new = fi
-                    if kind[i] == FIXED:
-                        new = fi + wp.inverse(B) * (target[i] - V[i])
-                    else:
-                        new = contact_update(B, V[i], fi, normal[i], height[i], target[i], mu[i])
+                    new = point_update(B, V[i], fi, kind[i], normal[i], height[i], target[i], mu[i])
                     df = new - fi
                     local = wp.max(local, wp.length(B * df))
                     f[i] = new
