@@ -373,3 +373,24 @@ def test_collider_corner_cannot_poke_through_a_face(box_ops, device):
         # a point just below the tip is inside the cube only if the tip went in deeper than that
         assert winding_number(body.points(), body.faces, [tip - (0.0, 1e-5, 0.0)], device="cpu")[0] < 0.5
     assert np.linalg.norm(body.contact_impulse) > 0.5 * body.mass * G * 40 * DT  # the tip carried it
+
+
+@pytest.mark.parametrize("mu", [0.2, 0.5])
+def test_block_on_an_incline_sticks_or_slides_at_g_sin_minus_mu_cos(box_ops, mu):
+    """A cube set flat on a 20 degree slope (tan = 0.36): with mu = 0.5 static friction holds it;
+    with mu = 0.2 it slides down accelerating at g (sin - mu cos) = 1.51 m/s^2."""
+    from wsim.rigid import rodrigues
+
+    theta = np.radians(20.0)
+    n = np.array([-np.sin(theta), np.cos(theta), 0.0])
+    down = -np.array([np.cos(theta), np.sin(theta), 0.0])
+    world = wsim.World(fps=1.0 / DT, device="cpu", gravity=(0.0, -G, 0.0))
+    world.add_collider(wsim.GroundPlane(0.0, friction=mu, normal=n))
+    body = world.add(wsim.BemBody(BOX, MAT, DT, operators=box_ops, rotation=rodrigues(np.array([0.0, 0.0, theta])),
+                                  position=0.1002 * n))
+    for _ in range(250):
+        world.step()
+    v = float(body.linear_momentum() @ down) / body.mass
+    expected = max(G * (np.sin(theta) - mu * np.cos(theta)), 0.0) * body.time
+    assert v == pytest.approx(expected, abs=0.03 * G * np.sin(theta) * body.time)
+    assert (body.points() @ n).min() > -body.constraint_tolerance
