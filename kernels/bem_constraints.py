@@ -155,28 +155,3 @@ def point_rows(
             s[2] += wp.float64(W[a + 2, b + q]) * pj[q]
     out[i] = s
 
-
-@wp.kernel
-def corner_points(
-    body: wp.uint64,
-    corners: wp.array(dtype=wp.vec3d),
-    reach: float,
-    face: wp.array(dtype=int),
-    bary: wp.array(dtype=wp.vec3d),
-    normal: wp.array(dtype=wp.vec3d),
-):
-    """Collider vertices inside the body's predicted surface (a closed mesh of its nodes): the
-    nearest face (-1: outside), the barycentric weights of the nearest point on it, and the
-    face's outward normal. Warp's barycentric (u, v) weight the face's first two corners."""
-    i = wp.tid()
-    c = corners[i]
-    p = wp.vec3(float(c[0]), float(c[1]), float(c[2]))
-    q = wp.mesh_query_point_sign_normal(body, p, reach)
-    face[i] = -1
-    if q.result and q.sign < 0.0:
-        face[i] = q.face
-        u = wp.float64(q.u)
-        v = wp.float64(q.v)
-        bary[i] = wp.vec3d(u, v, wp.float64(1.0) - u - v)
-        nrm = wp.mesh_eval_face_normal(body, q.face)
-        normal[i] = wp.vec3d(wp.float64(nrm[0]), wp.float64(nrm[1]), wp.float64(nrm[2]))

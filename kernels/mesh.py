@@ -58,3 +58,32 @@ def winding_number_direct(
         den = la * lb * lc + wp.dot(a, b) * lc + wp.dot(b, c) * la + wp.dot(c, a) * lb
         total += wp.atan2(wp.dot(a, wp.cross(b, c)), den)
     out[i] = total / _TWO_PI
+
+
+@wp.kernel
+def nearest_face_points(
+    mesh: wp.uint64,
+    points: wp.array(dtype=wp.vec3d),
+    reach: float,
+    margin: float,
+    face: wp.array(dtype=int),
+    bary: wp.array(dtype=wp.vec3d),
+    normal: wp.array(dtype=wp.vec3d),
+):
+    """For each point inside a closed, outward mesh or within ``margin`` of it (searching up to
+    ``reach``): the nearest face (-1: neither), the barycentric weights of the nearest point on it
+    (Warp's (u, v) weight the face's first two corners) and the face's outward normal."""
+    i = wp.tid()
+    c = points[i]
+    p = wp.vec3(float(c[0]), float(c[1]), float(c[2]))
+    q = wp.mesh_query_point_sign_normal(mesh, p, reach)
+    face[i] = -1
+    if q.result:
+        cl = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+        if q.sign < 0.0 or wp.length(cl - p) <= margin:
+            face[i] = q.face
+            u = wp.float64(q.u)
+            v = wp.float64(q.v)
+            bary[i] = wp.vec3d(u, v, wp.float64(1.0) - u - v)
+            nrm = wp.mesh_eval_face_normal(mesh, q.face)
+            normal[i] = wp.vec3d(wp.float64(nrm[0]), wp.float64(nrm[1]), wp.float64(nrm[2]))

@@ -78,9 +78,9 @@ def test_cube_rests_on_the_ground_without_sinking_or_drifting(box_ops, device):
     J0 = body.contact_impulse.copy()
     for _ in range(200):
         world.step()
-        assert body.points()[:, 1].min() > -1e-9
+        assert body.points()[:, 1].min() > -1e-5 * box_ops.r_max  # the solver's tolerance
     x1 = body.points()
-    assert np.abs(x1 - x0).max() < 1e-8  # neither slides nor sinks
+    assert np.abs(x1 - x0).max() < 1e-7  # neither slides nor sinks
     # at rest: no momentum, and over the rest the contact carries exactly the weight
     assert np.abs(body.linear_momentum()).max() < 1e-6 * body.mass
     assert body.kinetic_energy() < 1e-12

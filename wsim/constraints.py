@@ -174,6 +174,10 @@ class Participant(Protocol):
         """Predict the coming step; returns (points, constraints on them, predicted world positions of
         every node of the body (N, 3))."""
 
+    def contact_surface(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float | None]:
+        """(predicted node positions, faces, node positions at the step start, friction) of the
+        opened step, for contact between bodies (``wsim.contact``)."""
+
     def constraint_response(self, points: PointRefs) -> tuple[wp.array, wp.array]:
         """K (3m, 3m) [m/N] of ``points`` on the device (V = V0 + K f) and its transpose."""
 
@@ -233,9 +237,10 @@ class _Side:
 
 
 def solve_group(bodies: Sequence[Any], joints: Sequence[tuple[Any, PointRefs, Any, PointRefs]], device: wp.Device,
-                tol: float, max_iter: int, step: int, refinements: int = 3) -> None:
+                tol: float, max_iter: int, step: int, refinements: int = 3, contact_margin: float | None = None) -> None:
     """One constrained step of ``bodies`` (participants) coupled by ``joints`` ((body_a, points_a,
-    body_b, points_b): the bodies' own point indices). See the module docstring.
+    body_b, points_b)) and, with ``contact_margin`` [m], by contact between them (``wsim.contact``).
+    See the module docstring.
 
     The linear model is refined by the true positions of the solved forces (``constraint_positions``)
     up to ``refinements`` times, until it misses them by less than ``tol``.
@@ -246,8 +251,8 @@ def solve_group(bodies: Sequence[Any], joints: Sequence[tuple[Any, PointRefs, An
         own, own_set, V = b.constraint_begin()
         index[id(b)] = len(sides)
         sides.append(_Side(b, own, own_set, V))
-    # constraints: own points first (one side), then joints (two sides)
-    side_body, side_point, side_sign = [], [], []
+    # constraints: own points first (one side), then joints and contacts between bodies (two sides)
+    side_body, side_point, side_sign, side_kind = [], [], [], []
     V0c, kinds, normal, height, target, mu = [], [], [], [], [], []
     for k, s in enumerate(sides):
         n_own = len(s.own)
@@ -256,13 +261,20 @@ def solve_group(bodies: Sequence[Any], joints: Sequence[tuple[Any, PointRefs, An
             side_body.append((k, 0))
             side_point.append((i, 0))
             side_sign.append((1.0, 0.0))
+        side_kind.extend(s.own_set.kind.tolist())
         V0c.append(s.own.positions(s.V))
         kinds.append(s.own_set.kind)
         normal.append(s.own_set.normal)
         height.append(s.own_set.height)
         target.append(s.own_set.target)
         mu.append(s.own_set.mu)
-    for body_a, pa, body_b, pb in joints:
+    pairs = [(ja, pa, jb, pb, None) for ja, pa, jb, pb in joints]
+    if contact_margin is not None and len(sides) > 1:
+        from wsim.contact import body_contacts
+
+        found = body_contacts([(s.body, *s.body.contact_surface()) for s in sides], contact_margin, device)
+        pairs += [(c.body_a, c.refs_a, c.body_b, c.refs_b, c) for c in found]
+    for body_a, pa, body_b, pb, touch in pairs:
         ka, kb = index[id(body_a)], index[id(body_b)]
         sa, sb = sides[ka], sides[kb]
         ia = len(sa.points) + np.arange(len(pa))
@@ -275,11 +287,18 @@ def solve_group(bodies: Sequence[Any], joints: Sequence[tuple[Any, PointRefs, An
             side_sign.append((1.0, -1.0))
         V0c.append(pa.positions(sa.V) - pb.positions(sb.V))
         m = len(pa)
-        kinds.append(np.full(m, FIXED, dtype=np.int32))
-        normal.append(np.zeros((m, 3)))
+        if touch is None:  # a joint: the two points coincide
+            kinds.append(np.full(m, FIXED, dtype=np.int32))
+            normal.append(np.zeros((m, 3)))
+            target.append(np.zeros((m, 3)))
+            mu.append(np.zeros(m))
+        else:  # contact: n . (P_a - P_b) >= 0, friction on the relative slip
+            kinds.append(np.full(m, CONTACT, dtype=np.int32))
+            normal.append(touch.normal)
+            target.append(touch.slip_ref)
+            mu.append(touch.mu)
         height.append(np.zeros(m))
-        target.append(np.zeros((m, 3)))
-        mu.append(np.zeros(m))
+        side_kind.extend([JOINT if touch is None else CONTACT] * m)
     C = len(side_body)
     if C == 0:
         for s in sides:
@@ -294,7 +313,7 @@ def solve_group(bodies: Sequence[Any], joints: Sequence[tuple[Any, PointRefs, An
     # responses of every side's points: one body without joints solves on its own K (and K^T);
     # otherwise the blocks go into one flat device array and the constraints' response is assembled
     blocks = [s.body.constraint_response(s.points) if len(s.points) else None for s in sides]
-    if len(sides) == 1 and not joints:
+    if len(sides) == 1 and not pairs:
         D, Dt = blocks[0]
     else:
         rows = np.array([3 * len(s.points) for s in sides], dtype=np.int32)
@@ -343,7 +362,10 @@ def solve_group(bodies: Sequence[Any], joints: Sequence[tuple[Any, PointRefs, An
         lam0 = lam
     record = SolveRecord(step=step, points=C, contacts=int(np.sum(cons.kind == CONTACT)), sweeps=sweeps_total,
                          residual=residual, converged=residual <= tol)
+    side_kind_a = np.array(side_kind, dtype=np.int32)
     for k, s in enumerate(sides):
-        kind = np.full(len(s.points), JOINT, dtype=np.int32)
-        kind[: len(s.own)] = s.own_set.kind
+        kind = np.zeros(len(s.points), dtype=np.int32)
+        for side in range(2):
+            on = np.flatnonzero((side_sign_a[:, side] != 0.0) & (side_body_a[:, side] == k))
+            kind[side_point_a[on, side]] = side_kind_a[on]
         s.body.constraint_end(s.points, forces[k], kind, record)

@@ -62,6 +62,8 @@ class World:
         gravity: gravitational acceleration [m/s^2]; None means 9.81 m/s^2 down the up axis.
         device: Warp device ("cpu", "cuda:0", ...); None picks cuda:0 when present, else cpu.
         up_axis: "Y" or "Z", the axis the scene is built in (ground planes default to it).
+        body_contact: BEM bodies of one dt collide with each other (``wsim.contact``); False lets
+            them pass through each other as before.
     """
 
     def __init__(
@@ -70,6 +72,7 @@ class World:
         gravity: Sequence[float] | None = None,
         device: str | None = None,
         up_axis: str = "Y",
+        body_contact: bool = True,
     ) -> None:
         fps_f = float(fps)
         if not math.isfinite(fps_f) or fps_f <= 0.0:
@@ -85,6 +88,7 @@ class World:
         self._bound = False
         self.surfaces: Surfaces | None = None  # the colliders as kinematic surfaces, made at the first step
         self.joints: list[wc.PointJoint] = []
+        self.body_contact = bool(body_contact)
         self._groups: list[tuple[list[Body], list]] = []  # bodies stepped together, their joints as points
 
     @property
@@ -149,7 +153,14 @@ class World:
             self.surfaces = Surfaces(self.colliders, self.up)
             for body in self.bodies:
                 body.attach_colliders(self.surfaces)
-            self._groups = _joint_groups(self.joints)
+            links = []
+            if self.body_contact:  # bodies that can touch: participants of one dt
+                by_dt: dict[float, list[Body]] = {}
+                for b in self.bodies:
+                    if hasattr(b, "constraint_begin"):
+                        by_dt.setdefault(round(float(b.dt), 15), []).append(b)
+                links = [(g[0], b) for g in by_dt.values() for b in g[1:]]
+            self._groups = _joint_groups(self.joints, links)
             self._bound = True
 
     def checkpoint(self, path: str | Path) -> Path:
@@ -182,7 +193,7 @@ class World:
             if id(body) not in grouped:
                 body.advance(t0, t1)
         for bodies, joints in self._groups:
-            _advance_group(bodies, joints, t1, self.device)
+            _advance_group(bodies, joints, t1, self.device, self.body_contact)
         self.frame += 1
 
     def _check_frame(self) -> None:
@@ -259,8 +270,9 @@ class World:
         )
 
 
-def _joint_groups(joints: Sequence[wc.PointJoint]) -> list[tuple[list[Body], list]]:
-    """Bodies connected by joints (union-find), each group with its joints as body points."""
+def _joint_groups(joints: Sequence[wc.PointJoint], links: Sequence[tuple[Body, Body]] = ()) -> list[tuple[list[Body], list]]:
+    """Bodies connected by joints or by ``links`` (bodies that may touch; union-find), each group
+    with its joints as body points."""
     parent: dict[int, int] = {}
     bodies: dict[int, Body] = {}
 
@@ -270,11 +282,11 @@ def _joint_groups(joints: Sequence[wc.PointJoint]) -> list[tuple[list[Body], lis
             i = parent[i]
         return i
 
-    for j in joints:
-        for b in (j.body_a, j.body_b):
-            parent.setdefault(id(b), id(b))
-            bodies[id(b)] = b
-        parent[find(id(j.body_a))] = find(id(j.body_b))
+    for a, b in [(j.body_a, j.body_b) for j in joints] + list(links):
+        for body in (a, b):
+            parent.setdefault(id(body), id(body))
+            bodies[id(body)] = body
+        parent[find(id(a))] = find(id(b))
     groups: dict[int, tuple[list[Body], list]] = {}
     for key, b in bodies.items():
         groups.setdefault(find(key), ([], []))[0].append(b)
@@ -284,11 +296,13 @@ def _joint_groups(joints: Sequence[wc.PointJoint]) -> list[tuple[list[Body], lis
     return list(groups.values())
 
 
-def _advance_group(bodies: list[Body], joints: list, t1: float, device) -> None:
-    """Step joined bodies together to the nearest multiple of their dt to t1, one solve per step."""
+def _advance_group(bodies: list[Body], joints: list, t1: float, device, contact: bool) -> None:
+    """Step joined or touching bodies together to the nearest multiple of their dt to t1, one
+    solve per step (with contact between them when ``contact``)."""
     dt = bodies[0].dt
     target = int(math.floor(t1 / dt + 0.5))
     tol = min(b.constraint_tolerance for b in bodies)
     iterations = max(b.constraint_iterations for b in bodies)
+    margin = min(b.contact_distance for b in bodies) if contact else None
     while bodies[0].steps < target and not any(b.failed for b in bodies):
-        wc.solve_group(bodies, joints, device, tol, iterations, bodies[0].steps + 1)
+        wc.solve_group(bodies, joints, device, tol, iterations, bodies[0].steps + 1, contact_margin=margin)

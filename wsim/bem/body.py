@@ -29,6 +29,7 @@ import warp as wp
 
 from wsim import mesh as wmesh
 from wsim import constraints as wc
+from wsim.contact import points_inside
 from wsim.bem import stepper
 from wsim.bem.constraints import (PointResponse, add_point_displacement, frame_terms, point_displacement,
                                   response_matrix)
@@ -525,7 +526,7 @@ class BemBody(Body):
             held[nd] = True
         surfaces = self._surfaces
         if surfaces is not None:
-            margin = self.contact_margin if self.contact_margin is not None else 1e-3 * self._so.operators.r_max
+            margin = self.contact_distance
             for ci, col in enumerate(surfaces):
                 plane = surfaces.plane(ci)
                 if plane is not None:
@@ -556,9 +557,6 @@ class BemBody(Body):
         """Vertices of collider mesh ci inside the body's predicted surface: each presses on the
         nearest point of a face, which must retreat behind the vertex along the face's inward normal
         (n . x >= n . c with n = -n_face). None when no vertex is inside."""
-        from wsim.kernels import bem_constraints as kb
-
-        d = self._device
         col = self._surfaces[ci]
         M = self._surfaces.matrix(ci, t)
         c = col.vertices @ M[:3, :3].T + M[:3, 3]
@@ -567,21 +565,11 @@ class BemBody(Body):
         if not len(near):
             return None
         faces = self._surface.faces
-        body = wp.Mesh(points=wp.array(V.astype(np.float32), dtype=wp.vec3, device=d),
-                       indices=wp.array(faces.astype(np.int32).ravel(), dtype=wp.int32, device=d))
-        k = len(near)
-        face = wp.empty(k, dtype=wp.int32, device=d)
-        bary = wp.zeros(k, dtype=wp.vec3d, device=d)
-        nrm = wp.zeros(k, dtype=wp.vec3d, device=d)
-        wp.launch(kb.corner_points, dim=k, device=d,
-                  inputs=[body.id, wp.array(c[near], dtype=wp.vec3d, device=d), float(np.linalg.norm(hi - lo)),
-                          face, bary, nrm])
-        f = face.numpy()
-        inside = np.flatnonzero(f >= 0)
+        inside, f, bary, nrm = points_inside(c[near], V, faces, 0.0, self._device)
         if not len(inside):
             return None
-        refs = wc.PointRefs(faces[f[inside]].astype(np.int64), bary.numpy()[inside])
-        n = -nrm.numpy()[inside]
+        refs = wc.PointRefs(faces[f].astype(np.int64), bary)
+        n = -nrm
         corner = c[near[inside]]
         G, g = self._surfaces.velocity(ci, t - self.dt, max(1e-6, 1e-3 * self.dt))
         prev = refs.positions(X_prev)
@@ -628,9 +616,16 @@ class BemBody(Body):
         if self._response is None:
             self._response = PointResponse.build(so)
         refs, points = self._constraint_points(V, X_prev, t)
-        self._cs = dict(u=u, a_ext=a_ext, alpha_ext=alpha_ext, lever=lever, x=x, pred_R=pred.R, t=t)
+        self._cs = dict(u=u, a_ext=a_ext, alpha_ext=alpha_ext, lever=lever, x=x, pred_R=pred.R, t=t, V=V,
+                        X_prev=X_prev)
         self._tick("collision", t0)
         return refs, points, V
+
+    def contact_surface(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float | None]:
+        """(predicted node positions, faces into the nodes, node positions at the step start,
+        friction) of the step ``constraint_begin`` opened (``wsim.contact``)."""
+        cs = self._cs
+        return cs["V"], self._surface.faces, cs["X_prev"], self.friction
 
     def constraint_response(self, points: wc.PointRefs) -> tuple[wp.array, wp.array]:
         """K (3m, 3m) of Eq. (14) for ``points`` and its transpose (``wsim.bem.constraints``)."""
@@ -715,12 +710,18 @@ class BemBody(Body):
                                   f"> tol {self.constraint_tolerance:.3g} m (see body.constraint_history)", RuntimeWarning, stacklevel=4)
         self._cs = None
         self._tick("constraints", t0)
-        self._finish_step(u, a_ext, alpha_ext, time.perf_counter(), correct=False)
+        # a step nothing held or touched is a free step: the paper's correction, as without colliders
+        self._finish_step(u, a_ext, alpha_ext, time.perf_counter(), correct=not len(points))
 
     @property
     def constraint_tolerance(self) -> float:
         """The constraint solve's tolerance [m] in use (``constraint_tol`` or its default)."""
         return self.constraint_tol if self.constraint_tol is not None else 1e-5 * self._so.operators.r_max
+
+    @property
+    def contact_distance(self) -> float:
+        """The contact margin [m] in use (``contact_margin`` or its default)."""
+        return self.contact_margin if self.contact_margin is not None else 1e-3 * self._so.operators.r_max
 
     @property
     def failed(self) -> bool:

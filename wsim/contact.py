@@ -1,0 +1,89 @@
+"""Contact between bodies: which surface points of one body are inside (or within a margin of)
+another's predicted surface, and the two-sided contact constraints that keep them out.
+
+Detection lives here, outside the methods: a body taking part exposes its predicted surface
+(``Participant.contact_surface``: node positions at the end of the coming step, their faces, the
+positions at its start, its friction) and the constraint solve (``wsim.constraints.solve_group``)
+takes the contacts like joints, as constraints between two bodies: n . (P_a - P_b) >= 0 for a node
+P_a of one body and the nearest point P_b of the other's face (a barycentric combination of three
+nodes), with n the face's outward normal, equal and opposite forces and Coulomb friction on the
+relative slip. Both ways (the nodes of each body against the faces of the other), so a corner of
+either cannot pass through a face of the other. Broad phase: the predicted bounding boxes, grown
+by the margin.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+import warp as wp
+
+from wsim.constraints import PointRefs
+from wsim.kernels import mesh as km
+
+#: friction of a body that gives none, for contact between bodies (the larger of the two is used)
+DEFAULT_FRICTION = 0.5
+
+
+@dataclass(frozen=True)
+class PairContacts:
+    """Two-sided contacts between bodies a and b (k of them): ``refs_a`` and ``refs_b`` are the
+    touching points, ``normal`` (k, 3) points from b's surface towards a, ``slip_ref`` (k, 3) is
+    the relative position P_a - P_b at the step start (no slip keeps it), ``mu`` (k,) the friction."""
+
+    body_a: Any
+    refs_a: PointRefs
+    body_b: Any
+    refs_b: PointRefs
+    normal: np.ndarray
+    slip_ref: np.ndarray
+    mu: np.ndarray
+
+
+def points_inside(points: np.ndarray, V: np.ndarray, faces: np.ndarray, margin: float,
+            device: wp.Device) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Indices of ``points`` inside (or within ``margin`` of) the closed surface (V, faces), their
+    nearest faces, barycentric weights and the faces' outward normals."""
+    mesh = wp.Mesh(points=wp.array(V.astype(np.float32), dtype=wp.vec3, device=device),
+                   indices=wp.array(faces.astype(np.int32).ravel(), dtype=wp.int32, device=device))
+    k = len(points)
+    face = wp.empty(k, dtype=wp.int32, device=device)
+    bary = wp.zeros(k, dtype=wp.vec3d, device=device)
+    nrm = wp.zeros(k, dtype=wp.vec3d, device=device)
+    reach = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+    wp.launch(km.nearest_face_points, dim=k, device=device,
+              inputs=[mesh.id, wp.array(points, dtype=wp.vec3d, device=device), reach, float(margin), face, bary, nrm])
+    f = face.numpy()
+    hit = np.flatnonzero(f >= 0)
+    return hit, f[hit], bary.numpy()[hit], nrm.numpy()[hit]
+
+
+def body_contacts(surfaces: Sequence[tuple[Any, np.ndarray, np.ndarray, np.ndarray, float | None]], margin: float,
+                  device: wp.Device) -> list[PairContacts]:
+    """Contacts between every pair of ``surfaces`` ((body, predicted node positions (N, 3), faces
+    (M, 3) into the nodes, node positions at the step start (N, 3), friction or None))."""
+    out = []
+    boxes = [(V.min(axis=0) - margin, V.max(axis=0) + margin) for _, V, _, _, _ in surfaces]
+    for i in range(len(surfaces)):
+        for j in range(i + 1, len(surfaces)):
+            (lo_i, hi_i), (lo_j, hi_j) = boxes[i], boxes[j]
+            if np.any(hi_i < lo_j) or np.any(hi_j < lo_i):
+                continue
+            a, b = surfaces[i], surfaces[j]
+            mu = max(DEFAULT_FRICTION if a[4] is None else a[4], DEFAULT_FRICTION if b[4] is None else b[4])
+            for (body_p, V_p, _, X_p, _), (body_f, V_f, F_f, X_f, _) in ((a, b), (b, a)):
+                lo, hi = V_f.min(axis=0) - margin, V_f.max(axis=0) + margin
+                near = np.flatnonzero(np.all((V_p >= lo) & (V_p <= hi), axis=1))
+                if not len(near):
+                    continue
+                hit, face, bary, normal = points_inside(V_p[near], V_f, F_f, margin, device)
+                if not len(hit):
+                    continue
+                nodes = near[hit]
+                refs_f = PointRefs(F_f[face].astype(np.int64), bary)
+                refs_p = PointRefs.nodes(nodes)
+                slip = X_p[nodes] - refs_f.positions(X_f)
+                out.append(PairContacts(body_p, refs_p, body_f, refs_f, normal, slip, np.full(len(nodes), mu)))
+    return out
