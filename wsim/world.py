@@ -3,9 +3,10 @@
 The World owns time. ``step`` advances every body from frame time t_f = f / fps to t_{f+1}; each
 body covers that interval with its own internal steps (PBD substeps, BEM's fixed dt, EoL's
 adaptive dt). After each frame every body is checked for NaN/Inf, and ``run`` hands the frame to
-the USD writer. Bodies of different methods meet only through colliders in this version. Bodies
-joined by ``PointJoint`` s (BEM bodies of one dt) step together: one constraint solve per step
-covers all of them (``wsim.constraints.solve_group``).
+the USD writer. BEM bodies of one dt that are joined by ``PointJoint`` s or may touch
+(``body_contact``) step together: one constraint solve per step covers all of them
+(``wsim.constraints.solve_group``, ``wsim.contact``). Bodies of different methods meet only
+through colliders in this version.
 """
 
 from __future__ import annotations
