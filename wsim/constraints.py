@@ -245,12 +245,35 @@ def solve_group(bodies: Sequence[Any], joints: Sequence[tuple[Any, PointRefs, An
     The linear model is refined by the true positions of the solved forces (``constraint_positions``)
     up to ``refinements`` times, until it misses them by less than ``tol``.
     """
-    sides = []
-    index = {}
-    for b in bodies:
-        own, own_set, V = b.constraint_begin()
-        index[id(b)] = len(sides)
-        sides.append(_Side(b, own, own_set, V))
+    sides = [_Side(b, *b.constraint_begin()) for b in bodies]
+    pairs = [(ja, pa, jb, pb, None) for ja, pa, jb, pb in joints]
+    if contact_margin is not None and len(sides) > 1:
+        from wsim.contact import body_contacts
+
+        found = body_contacts([(s.body, *s.body.contact_surface()) for s in sides], contact_margin, device)
+        pairs += [(c.body_a, c.refs_a, c.body_b, c.refs_b, c) for c in found]
+    # bodies no joint or contact links this step are solved apart (each on its own K, with no
+    # zero blocks between them in the sweeps)
+    parent = list(range(len(sides)))
+    slot = {id(s.body): k for k, s in enumerate(sides)}
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            i = parent[i]
+        return i
+
+    for pair in pairs:
+        parent[find(slot[id(pair[0])])] = find(slot[id(pair[2])])
+    for root in sorted({find(k) for k in range(len(sides))}):
+        members = [s for k, s in enumerate(sides) if find(k) == root]
+        linked = [p for p in pairs if find(slot[id(p[0])]) == root]
+        _solve_component(members, linked, device, tol, max_iter, step, refinements)
+
+
+def _solve_component(sides: list[_Side], pairs: list, device: wp.Device, tol: float, max_iter: int, step: int,
+                     refinements: int) -> None:
+    """``solve_group`` for bodies linked by joints or contacts (or one body)."""
+    index = {id(s.body): k for k, s in enumerate(sides)}
     # constraints: own points first (one side), then joints and contacts between bodies (two sides)
     side_body, side_point, side_sign, side_kind = [], [], [], []
     V0c, kinds, normal, height, target, mu = [], [], [], [], [], []
@@ -268,12 +291,6 @@ def solve_group(bodies: Sequence[Any], joints: Sequence[tuple[Any, PointRefs, An
         height.append(s.own_set.height)
         target.append(s.own_set.target)
         mu.append(s.own_set.mu)
-    pairs = [(ja, pa, jb, pb, None) for ja, pa, jb, pb in joints]
-    if contact_margin is not None and len(sides) > 1:
-        from wsim.contact import body_contacts
-
-        found = body_contacts([(s.body, *s.body.contact_surface()) for s in sides], contact_margin, device)
-        pairs += [(c.body_a, c.refs_a, c.body_b, c.refs_b, c) for c in found]
     for body_a, pa, body_b, pb, touch in pairs:
         ka, kb = index[id(body_a)], index[id(body_b)]
         sa, sb = sides[ka], sides[kb]
