@@ -250,7 +250,9 @@ def solve_group(bodies: Sequence[Any], joints: Sequence[tuple[Any, PointRefs, An
     if contact_margin is not None and len(sides) > 1:
         from wsim.contact import body_contacts
 
-        found = body_contacts([(s.body, *s.body.contact_surface()) for s in sides], contact_margin, device)
+        # jointed bodies (the pieces of a decomposed body) do not collide: their interfaces touch
+        skip = {frozenset((id(a), id(b))) for a, _, b, _ in joints}
+        found = body_contacts([(s.body, *s.body.contact_surface()) for s in sides], contact_margin, device, skip)
         pairs += [(c.body_a, c.refs_a, c.body_b, c.refs_b, c) for c in found]
     # bodies no joint or contact links this step are solved apart (each on its own K, with no
     # zero blocks between them in the sweeps)

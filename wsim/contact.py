@@ -61,13 +61,16 @@ def points_inside(points: np.ndarray, V: np.ndarray, faces: np.ndarray, margin: 
 
 
 def body_contacts(surfaces: Sequence[tuple[Any, np.ndarray, np.ndarray, np.ndarray, float | None]], margin: float,
-                  device: wp.Device) -> list[PairContacts]:
+                  device: wp.Device, skip: set | frozenset = frozenset()) -> list[PairContacts]:
     """Contacts between every pair of ``surfaces`` ((body, predicted node positions (N, 3), faces
-    (M, 3) into the nodes, node positions at the step start (N, 3), friction or None))."""
+    (M, 3) into the nodes, node positions at the step start (N, 3), friction or None)), except the
+    pairs in ``skip`` (frozensets of the two bodies' ids)."""
     out = []
     boxes = [(V.min(axis=0) - margin, V.max(axis=0) + margin) for _, V, _, _, _ in surfaces]
     for i in range(len(surfaces)):
         for j in range(i + 1, len(surfaces)):
+            if frozenset((id(surfaces[i][0]), id(surfaces[j][0]))) in skip:
+                continue
             (lo_i, hi_i), (lo_j, hi_j) = boxes[i], boxes[j]
             if np.any(hi_i < lo_j) or np.any(hi_j < lo_i):
                 continue
