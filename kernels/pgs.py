@@ -243,6 +243,8 @@ def pgs_block(
     while j < m:
         V[j] = V0[j] + response_times(K, f, j)
         j += T
+    # a block barrier: no lane may change f (the first sweep) while another still sums it above
+    wp.tile_max(wp.tile(wp.float64(0.0)))
     sweeps = int(0)
     res = wp.float64(0.0)
     done = int(0)

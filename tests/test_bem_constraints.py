@@ -184,6 +184,8 @@ def test_constraint_input_errors(box_ops):
         wsim.BemBody(BOX, MAT, DT, operators=box_ops, name="cube2", friction=-1.0)
     with pytest.raises(InvalidParameter, match="handle"):
         body.release(99)
+    with pytest.raises(InvalidParameter, match="cube.*vertex 0 is already held"):
+        body.fix([3, 0])
 
 
 def _facing_vertices(mesh, offset):
@@ -272,6 +274,17 @@ def test_gauss_seidel_block_matches_the_single_thread_reference(device):
     assert f[:, 1].min() >= 0.0 and V[:, 1].min() > -1e-12  # pushes only, no gap left negative
     assert np.abs(f[:, 1] * V[:, 1]).max() < 1e-10  # complementary
     assert np.abs(f[:, [0, 2]]).max() == 0.0  # frictionless: normal forces only
+
+    rough = wc.PointSet()
+    rough.add(wc.CONTACT, up[: m // 2], np.zeros(m // 2), V0[: m // 2] + 0.01, 0.4)
+    rough.add(wc.FIXED, np.zeros((m - m // 2, 3)), np.zeros(m - m // 2), target[m // 2:], 0.0)
+    start = rng.normal(size=(m, 3))  # a warm start of any forces
+    block = wc.solve_points(Kd, Ktd, V0, rough, start, 1e-13, 500, dev)
+    single = wc.solve_points(Kd, None, V0, rough, start, 1e-13, 500, dev)
+    assert block[2] == single[2] and np.abs(block[0] - single[0]).max() < 1e-9
+    f = block[0][: m // 2]
+    assert f[:, 1].min() >= 0.0
+    assert np.all(np.linalg.norm(f[:, [0, 2]], axis=1) <= 0.4 * f[:, 1] * (1.0 + 1e-12) + 1e-15)  # in the cone
 
 
 def test_domain_decomposition_shares_operators_and_holds_its_interfaces(device):

@@ -187,8 +187,9 @@ class Participant(Protocol):
     def constraint_nonlinearity(self, points: PointRefs, forces: np.ndarray) -> float:
         """An upper bound [m] on how far the true positions of these forces can be from V0 + K f."""
 
-    def constraint_warm(self, points: PointRefs) -> np.ndarray:
-        """The forces (m, 3) [N] the points carried last step, to start the solve from (zeros if none)."""
+    def constraint_warm(self, points: PointRefs, kind: np.ndarray) -> np.ndarray:
+        """The forces (m, 3) [N] the points carried last step in constraints of the same kind
+        (CONTACT, FIXED, JOINT), to start the solve from (zeros if none)."""
 
     def constraint_end(self, points: PointRefs, forces: np.ndarray, kind: np.ndarray, record: SolveRecord) -> None:
         """Apply the forces and finish the step; ``kind`` (m,) says what each force came from:
@@ -350,11 +351,12 @@ def _solve_component(sides: list[_Side], pairs: list, device: wp.Device, tol: fl
                           wp.array(side_point_a, dtype=wp.int32, device=device),
                           wp.array(side_sign_a, dtype=wp.float64, device=device), D, Dt])
     # warm start: each participant's last forces on the same points
+    side_kind_a = np.array(side_kind, dtype=np.int32)
     lam0 = np.zeros((C, 3))
     for k, s in enumerate(sides):
         first = np.flatnonzero(side_body_a[:, 0] == k)
         if len(first):
-            lam0[first] = s.body.constraint_warm(s.points[side_point_a[first, 0]])
+            lam0[first] = s.body.constraint_warm(s.points[side_point_a[first, 0]], side_kind_a[first])
     shift = np.zeros_like(V0)
     sweeps_total = 0
     for _ in range(refinements):
@@ -381,7 +383,6 @@ def _solve_component(sides: list[_Side], pairs: list, device: wp.Device, tol: fl
         lam0 = lam
     record = SolveRecord(step=step, points=C, contacts=int(np.sum(cons.kind == CONTACT)), sweeps=sweeps_total,
                          residual=residual, converged=residual <= tol)
-    side_kind_a = np.array(side_kind, dtype=np.int32)
     for k, s in enumerate(sides):
         kind = np.zeros(len(s.points), dtype=np.int32)
         for side in range(2):

@@ -64,15 +64,15 @@ class BemState:
         window_peak, window_previous, window_growing: the growth check's running window.
         contact_impulse, fixed_impulse, joint_impulse: (3,) world impulses of the contact, of the
             fixed and driven points and of the joints so far [N s].
-        point_nodes, point_forces: the nodes and world forces [N] of the last constraint solve (its
-            warm start).
+        point_nodes, point_kinds, point_forces: the nodes, constraint kinds and world forces [N] of
+            the last constraint solve (its warm start, matched by node and kind).
         material_velocity, material_omega: (3,) world velocity of the centre of mass and angular
             velocity of the material over the last step [m/s], [rad/s] (the read-outs'). Equal to
             the frame's, except on a constrained step, where the pose transfer moves the frame.
         frame_is_material: the last step left the frame's velocities as the material's.
     """
 
-    _ragged: ClassVar[tuple[str, ...]] = ("point_nodes", "point_forces")
+    _ragged: ClassVar[tuple[str, ...]] = ("point_nodes", "point_kinds", "point_forces")
 
     U: wp.array
     P: wp.array
@@ -89,6 +89,7 @@ class BemState:
     fixed_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
     joint_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
     point_nodes: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    point_kinds: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     point_forces: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     material_velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
     material_omega: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -462,6 +463,9 @@ class BemBody(Body):
             raise InvalidParameter(f"{p}: vertex id {int(bad[0])} is out of range [0, {n_vertices - 1}]")
         if len(np.unique(ids)) != len(ids):
             raise InvalidParameter(f"{p}: fix() got a vertex id twice")
+        held = np.intersect1d(ids, np.concatenate([c[0] for c in self._fixed.values()]) if self._fixed else [])
+        if held.size:
+            raise InvalidParameter(f"{p}: vertex {int(held[0])} is already held by another fix(); release() it first")
         if target is None:
             target = self.points()[ids]
         elif not callable(target):
@@ -475,7 +479,8 @@ class BemBody(Body):
         return handle
 
     def joint_points(self, vertex_ids: np.ndarray) -> wc.PointRefs:
-        """The node a joint holds at each mesh vertex (its first double-node copy)."""
+        """The node a joint holds at each mesh vertex: its first double-node copy (the other copies of
+        a vertex on a crease are not held)."""
         first = np.full(len(self._node_count), -1)
         first[self._surface.vertex[::-1]] = np.arange(self._surface.n_nodes)[::-1]
         return wc.PointRefs.nodes(first[np.asarray(vertex_ids)])
@@ -671,15 +676,17 @@ class BemBody(Body):
         omega = float(np.linalg.norm(f.omega))
         return 2.0 * ops.r_max * self.dt**2 * dw * (omega + 0.5 * dw)
 
-    def constraint_warm(self, points: wc.PointRefs) -> np.ndarray:
-        """Last step's forces of the nodes among ``points`` (points on faces start from zero)."""
+    def constraint_warm(self, points: wc.PointRefs, kind: np.ndarray) -> np.ndarray:
+        """Last step's forces of the nodes among ``points`` in constraints of the same kind (a node
+        may be held, in contact and joined at once); points on faces start from zero."""
         st = self.state
         out = np.zeros((len(points), 3))
         if len(st.point_nodes):
-            last = np.full(self._so.operators.n_nodes, -1)
-            last[st.point_nodes] = np.arange(len(st.point_nodes))
-            j = np.where(points.is_node, last[points.ids[:, 0]], -1)
-            out[j >= 0] = st.point_forces[j[j >= 0]]
+            last = {(int(n), int(k)): i for i, (n, k) in enumerate(zip(st.point_nodes, st.point_kinds))}
+            for i in np.flatnonzero(points.is_node):
+                j = last.get((int(points.ids[i, 0]), int(kind[i])))
+                if j is not None:
+                    out[i] = st.point_forces[j]
         return out
 
     def constraint_end(self, points: wc.PointRefs, forces: np.ndarray, kind: np.ndarray,
@@ -693,12 +700,15 @@ class BemBody(Body):
             n3 = so.size
             self._p_in.numpy()[:n3] = p_c if self._p_loads is None else self._p_loads + p_c
             wp.copy(self._p, self._p_in, count=n3)
+            if self._loads:  # the next step's loads rewrite the (pinned) staging buffer: let this copy finish
+                wp.synchronize_device(self._device)
             self._p_live = True
             self._loaded_now = True
             for k, attr in ((wc.CONTACT, "contact_impulse"), (wc.FIXED, "fixed_impulse"), (wc.JOINT, "joint_impulse")):
                 setattr(st, attr, getattr(st, attr) + self.dt * forces[kind == k].sum(axis=0))
         node = points.is_node
         st.point_nodes = points.ids[node, 0].astype(np.int64)
+        st.point_kinds = np.asarray(kind, dtype=np.int64)[node]
         st.point_forces = np.asarray(forces, dtype=np.float64).reshape(-1, 3)[node]
         if record is not None:
             self.constraint_history.append(record)
