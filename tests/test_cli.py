@@ -42,7 +42,7 @@ def test_eol_scenes_run_and_write_usd(tmp_path, scene):
     assert np.all(np.isfinite(p2)) and np.abs(p2 - p0).max() > 0.0  # it moved
 
 
-@pytest.mark.parametrize("scene", ["bem_cube_drop", "bem_glued_cubes", "bem_friction"])
+@pytest.mark.parametrize("scene", ["bem_cube_drop", "bem_glued_cubes", "bem_friction", "bem_pile"])
 def test_bem_constraint_scenes_run_and_write_usd(tmp_path, scene):
     """The BEM contact and joint scenes end to end with their procedural bodies (small enough for a
     CPU operator build): every body written for every frame, lying on the ground after landing."""
