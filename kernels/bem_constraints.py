@@ -80,60 +80,6 @@ def response_blocks(
 
 
 @wp.kernel
-def add_columns(
-    W: wp.array2d(dtype=Any),
-    nodes: wp.array(dtype=int),
-    p: wp.array(dtype=wp.vec3d),
-    u: wp.array(dtype=wp.float64),
-):
-    """u += W[:, columns of nodes] p: the displacement of the point tractions p (frame axes)."""
-    r = wp.tid()
-    s = wp.float64(0.0)
-    for j in range(nodes.shape[0]):
-        c = 3 * nodes[j]
-        pj = p[j]
-        s += wp.float64(W[r, c]) * pj[0] + wp.float64(W[r, c + 1]) * pj[1] + wp.float64(W[r, c + 2]) * pj[2]
-    u[r] = u[r] + s
-
-
-@wp.kernel
-def collider_points(
-    mesh: wp.uint64,
-    V: wp.array(dtype=wp.vec3d),
-    to_local: wp.mat44d,
-    to_world: wp.mat44d,
-    margin: float,
-    reach: float,
-    normal: wp.array(dtype=wp.vec3d),
-    height: wp.array(dtype=wp.float64),
-    hit: wp.array(dtype=int),
-):
-    """For each point, the tangent plane n . x >= height of the nearest point of a closed collider
-    mesh (outward face normal n, world axes) when the point is inside the mesh or within
-    ``margin`` of it; hit = 1 there. The query searches up to ``reach`` (the collider's size), so a
-    point deep inside is found too. A rigid pose: ``to_world`` is the collider's local-to-world
-    matrix, ``to_local`` its inverse."""
-    i = wp.tid()
-    x = V[i]
-    pl = to_local * wp.vec4d(x[0], x[1], x[2], wp.float64(1.0))
-    p = wp.vec3(float(pl[0]), float(pl[1]), float(pl[2]))
-    q = wp.mesh_query_point_sign_normal(mesh, p, reach)
-    hit[i] = 0
-    if q.result:
-        cl = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
-        if q.sign > 0.0 and wp.length(cl - p) > margin:
-            return
-        nl = wp.mesh_eval_face_normal(mesh, q.face)
-        cw = to_world * wp.vec4d(wp.float64(cl[0]), wp.float64(cl[1]), wp.float64(cl[2]), wp.float64(1.0))
-        nw = to_world * wp.vec4d(wp.float64(nl[0]), wp.float64(nl[1]), wp.float64(nl[2]), wp.float64(0.0))
-        n = wp.normalize(wp.vec3d(nw[0], nw[1], nw[2]))
-        c = wp.vec3d(cw[0], cw[1], cw[2])
-        normal[i] = n
-        height[i] = wp.dot(n, c)
-        hit[i] = 1
-
-
-@wp.kernel
 def point_rows(
     W: wp.array2d(dtype=Any),
     rows: wp.array(dtype=int),

@@ -1,8 +1,10 @@
-"""Warp kernels of point-in-mesh queries on closed triangle surfaces (used by ``wsim.mesh.inside``).
+"""Warp kernels of point-in-mesh queries on closed triangle surfaces (used by ``wsim.mesh.inside``
+and ``wsim.contact``).
 
 ``classify``: inside/outside by the generalized winding number (Jacobson et al. 2013) through
 Warp's BVH fast-winding-number query (Barill et al. 2018), with the distance to the surface.
 ``winding_number_direct``: the exact winding number by the direct sum of triangle solid angles.
+``nearest_face_points``: the nearest face point of points inside a surface or near it (contact).
 """
 
 from __future__ import annotations

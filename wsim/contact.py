@@ -42,22 +42,31 @@ class PairContacts:
     mu: np.ndarray
 
 
-def points_inside(points: np.ndarray, V: np.ndarray, faces: np.ndarray, margin: float,
-            device: wp.Device) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Indices of ``points`` inside (or within ``margin`` of) the closed surface (V, faces), their
-    nearest faces, barycentric weights and the faces' outward normals."""
-    mesh = wp.Mesh(points=wp.array(V.astype(np.float32), dtype=wp.vec3, device=device),
-                   indices=wp.array(faces.astype(np.int32).ravel(), dtype=wp.int32, device=device))
+def nearest_faces(mesh: wp.Mesh, points: np.ndarray, reach: float, margin: float,
+                  device: wp.Device) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Indices of ``points`` (in the mesh's coordinates) inside the closed, outward ``mesh`` or
+    within ``margin`` of it (searched up to ``reach``), their nearest faces, the barycentric
+    weights of the nearest points on them and the faces' outward normals."""
     k = len(points)
     face = wp.empty(k, dtype=wp.int32, device=device)
     bary = wp.zeros(k, dtype=wp.vec3d, device=device)
     nrm = wp.zeros(k, dtype=wp.vec3d, device=device)
-    reach = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
     wp.launch(km.nearest_face_points, dim=k, device=device,
-              inputs=[mesh.id, wp.array(points, dtype=wp.vec3d, device=device), reach, float(margin), face, bary, nrm])
+              inputs=[mesh.id, wp.array(np.ascontiguousarray(points), dtype=wp.vec3d, device=device), float(reach),
+                      float(margin), face, bary, nrm])
     f = face.numpy()
     hit = np.flatnonzero(f >= 0)
     return hit, f[hit], bary.numpy()[hit], nrm.numpy()[hit]
+
+
+def points_inside(points: np.ndarray, V: np.ndarray, faces: np.ndarray, margin: float,
+                  device: wp.Device) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``nearest_faces`` on the closed surface (V, faces) built for the query (a body's predicted
+    surface changes every step)."""
+    mesh = wp.Mesh(points=wp.array(V.astype(np.float32), dtype=wp.vec3, device=device),
+                   indices=wp.array(faces.astype(np.int32).ravel(), dtype=wp.int32, device=device))
+    reach = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+    return nearest_faces(mesh, points, reach, margin, device)
 
 
 def body_contacts(surfaces: Sequence[tuple[Any, np.ndarray, np.ndarray, np.ndarray, float | None]], margin: float,

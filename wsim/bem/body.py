@@ -29,7 +29,7 @@ import warp as wp
 
 from wsim import mesh as wmesh
 from wsim import constraints as wc
-from wsim.contact import points_inside
+from wsim.contact import nearest_faces, points_inside
 from wsim.bem import stepper
 from wsim.bem.constraints import (PointResponse, add_point_displacement, frame_terms, point_displacement,
                                   response_matrix)
@@ -582,20 +582,18 @@ class BemBody(Body):
 
     def _mesh_points(self, ci: int, V: np.ndarray, t: float, margin: float,
                      held: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        from wsim.kernels import bem_constraints as kb
-
-        d = self._device
+        """Nodes inside collider mesh ci or within ``margin`` of it, with the tangent plane
+        n . x >= height of the nearest collider point (outward normal, world axes)."""
+        col = self._surfaces[ci]
         M = self._surfaces.matrix(ci, t)
-        n = len(V)
-        normal = wp.zeros(n, dtype=wp.vec3d, device=d)
-        height = wp.zeros(n, dtype=wp.float64, device=d)
-        hit = wp.zeros(n, dtype=wp.int32, device=d)
-        wp.launch(kb.collider_points, dim=n, device=d,
-                  inputs=[self._surfaces[ci].device_mesh(d).id, wp.array(V, dtype=wp.vec3d, device=d),
-                          wp.mat44d(*np.linalg.inv(M).ravel()), wp.mat44d(*M.ravel()), float(margin),
-                          float(self._surfaces[ci].extent), normal, height, hit])
-        sel = np.flatnonzero((hit.numpy() > 0) & ~held)
-        return sel, normal.numpy()[sel], height.numpy()[sel]
+        local = (V - M[:3, 3]) @ np.linalg.inv(M[:3, :3]).T
+        hit, face, bary, nrm = nearest_faces(col.device_mesh(self._device), local, col.extent, margin, self._device)
+        keep = ~held[hit]
+        hit, face, bary, nrm = hit[keep], face[keep], bary[keep], nrm[keep]
+        closest = np.einsum("mk,mkd->md", bary, col.vertices[col.faces[face]]) @ M[:3, :3].T + M[:3, 3]
+        normal = nrm @ M[:3, :3].T  # a rigid pose: normals turn like the mesh
+        normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+        return hit, normal, np.einsum("ij,ij->i", normal, closest)
 
     # -- the constraint seam (``wsim.constraints.Participant``) --------------------------------------
     def constraint_begin(self) -> tuple[wc.PointRefs, wc.PointSet, np.ndarray]:

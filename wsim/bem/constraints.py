@@ -13,6 +13,7 @@ import numpy as np
 import warp as wp
 
 from wsim.bem.stepper import StepOperators
+from wsim.rigid import cross_matrix
 from wsim.kernels import bem_constraints as kb
 
 
@@ -64,23 +65,15 @@ def frame_terms(so: StepOperators, points, lever: np.ndarray, R: np.ndarray, dt:
     m = len(points)
     if frame_update:
         lin_a = np.broadcast_to(dt * dt * np.eye(3), (m, 3, 3))
-        r = lever
-        rx = np.zeros((m, 3, 3))
-        rx[:, 0, 1], rx[:, 0, 2], rx[:, 1, 2] = -r[:, 2], r[:, 1], -r[:, 0]
-        rx[:, 1, 0], rx[:, 2, 0], rx[:, 2, 1] = r[:, 2], -r[:, 1], r[:, 0]
-        return lin_a, -dt * dt * rx
+        return lin_a, -dt * dt * cross_matrix(np.reshape(lever, (m, 3)))
     E = np.einsum("mk,mkab->mab", points.w, so.E.reshape(-1, 3, 6)[points.ids])  # (m, 3, 6) at the points
     return -R @ E[:, :, :3] @ R.T, -R @ E[:, :, 3:] @ R.T
 
 
 def add_point_displacement(so: StepOperators, nodes: np.ndarray, p: np.ndarray, u: np.ndarray) -> np.ndarray:
     """u + W[:, nodes] p for the (m, 3) frame-axes tractions p on ``nodes`` (u: (3N,) host)."""
-    d = so.device
-    out = wp.array(u, dtype=wp.float64, device=d)
-    wp.launch(kb.add_columns, dim=so.size, device=d,
-              inputs=[so.H0_inv_Gp, wp.array(nodes.astype(np.int32), dtype=wp.int32, device=d),
-                      wp.array(np.ascontiguousarray(p), dtype=wp.vec3d, device=d), out])
-    return out.numpy()
+    every = np.arange(so.operators.n_nodes)
+    return u + point_displacement(so, every, nodes, p).reshape(-1)
 
 
 def point_displacement(so: StepOperators, rows: np.ndarray, nodes: np.ndarray, p: np.ndarray) -> np.ndarray:

@@ -106,12 +106,9 @@ class Correction:
     def apply(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Steps 1-6 for the (3N,) displacement u: returns (da, dalpha, corrected u)."""
         n = self.x.shape[0]
-        u3 = u.reshape(n, 3)
-        t = (self.w @ u3) / self.w_sum
+        t, _, u2 = self.drift(u)  # steps 1, 3, 4
         da = -self.K_a @ t
-        p = self.q + u3 - t
-        R_e = nearest_rotation(p.T @ self.wq)
-        du = (p @ R_e - p).reshape(-1)  # rows of R_e^T p_i, minus p_i: u'' - u'
+        du = u2 - (u.reshape(n, 3) - t).reshape(-1)  # u'' - u'
         r1 = -self.H0_T @ t - self.D0 @ da
         dalpha = self.P_Q @ r1 + self.P_Q_H0 @ du
         return da, dalpha, u + self.E @ np.concatenate([da, dalpha])
