@@ -233,7 +233,8 @@ class BemBody(Body):
         if self.friction is not None and self.friction < 0.0:
             raise InvalidParameter(f"body '{name}': friction = {friction} must be >= 0")
         self.constraint_iterations = positive_int(constraint_iterations, f"body '{name}': constraint_iterations")
-        self._fixed: dict[int, tuple[np.ndarray, np.ndarray, Any]] = {}  # handle -> (vertex ids, nodes, target)
+        # handle -> (vertex ids, their nodes, target, each node's row in the targets)
+        self._fixed: dict[int, tuple[np.ndarray, np.ndarray, Any, np.ndarray]] = {}
         self._next_handle = 0
         self._surfaces: Surfaces | None = None
         self._response: PointResponse | None = None
