@@ -229,14 +229,25 @@ def test_initial_overlap_with_a_collider_is_refused_or_resolved():
 
 
 def test_material_leaving_the_grid_stops_the_run():
-    """E = 1e5 spun at 10 rev/s flies apart: the run stops at once with SimulationDiverged naming the
-    body and 'material left the grid' (it used to run until dt collapsed, frames later)."""
+    """E = 1e3 spun at 10 rev/s flies apart (centrifugal stress ~1000x E). The grid grows with the
+    spreading disc up to 3x its first size across, then the run stops with SimulationDiverged
+    naming the body and 'material left the grid' (without the check it ran until dt collapsed,
+    frames later). E = 1e5 at the same spin stretches to about 1.8x its radius and stays bounded:
+    the grid grows once and the run goes on."""
     w = free_world()
-    w.add(EolBody(sphere(), SOFT, resolution=6, name="spinner", angular_velocity=(0, 2 * np.pi * 10, 0)))
+    b = w.add(EolBody(sphere(), wsim.ElasticMaterial(E=1e3, nu=0.3, rho=1000.0), resolution=6, name="spinner",
+                      angular_velocity=(0, 2 * np.pi * 10, 0)))
+    cells = b.grid.cells
     with pytest.raises(wsim.SimulationDiverged, match="body 'spinner'.*material left the grid") as err:
-        for _ in range(3):
+        for _ in range(10):
             w.step()
-    assert err.value.step <= 2
+    assert err.value.step <= 8
+    assert b.grid.cells[0] == 3 * cells[0] and b.grid.cells[2] == 3 * cells[2]
+    w = free_world()
+    b = w.add(EolBody(sphere(), SOFT, resolution=6, name="spinner", angular_velocity=(0, 2 * np.pi * 10, 0)))
+    for _ in range(6):
+        w.step()
+    assert cells[0] < b.grid.cells[0] < 3 * cells[0]
 
 
 def test_spin_keeps_angular_momentum_and_energy():

@@ -127,3 +127,57 @@ def _fresh_state():
     b = EolBody(trimesh.creation.icosphere(subdivisions=1, radius=0.5), SOFT, resolution=5)
     b.bind(wp.get_device("cpu"), np.zeros(3), np.array([0.0, 1.0, 0.0]))
     return b.get_state()
+
+
+def test_growing_the_grid_copies_the_state_exactly():
+    """``_regrid`` enlarges the grid by whole cells: every old node is a new node, so the surface,
+    the momenta, the masses and the elastic energy are unchanged, and shrinking back restores z
+    and v bit for bit."""
+    w, b = make(plastic=False)
+    w.step()
+    before = b.get_state()
+    P, L, E, x = b.linear_momentum(), b.angular_momentum(), b.elastic_energy, b.points()
+    m = b.node_masses().sum()
+    cells = b.grid.cells
+    b._regrid(np.array([1, 0, 2, 3, 1, 0]))
+    assert b.grid.cells == (cells[0] + 4, cells[1] + 1, cells[2] + 2)
+    assert np.array_equal(b.points(), x)
+    np.testing.assert_allclose(b.linear_momentum(), P, rtol=0, atol=1e-12 * np.linalg.norm(P))
+    np.testing.assert_allclose(b.angular_momentum(), L, rtol=0, atol=1e-12 * np.linalg.norm(L) + 1e-12)
+    assert b.node_masses().sum() == pytest.approx(m, rel=1e-13)
+    assert b.elastic_energy == pytest.approx(E, rel=1e-12)
+    b._regrid(np.zeros(6, dtype=np.int64))
+    after = b.get_state()
+    for key in ("z", "v", "y_points", "y_vertices"):
+        assert np.array_equal(after[key], before[key]), key
+
+
+def test_restored_body_continues_on_its_grown_grid():
+    """A body with one cell of padding squashed on landing grows its grid; its state carries the
+    growth (``grid_grown``): a body built the same way takes it, regrows and continues bit for bit,
+    and a state that does not fit leaves the grown body as it was."""
+    n = 3
+    w1, b1 = make(plastic=False, padding=1)
+    for _ in range(2 * n):
+        w1.step()
+    w2, b2 = make(plastic=False, padding=1)
+    for _ in range(n):
+        w2.step()
+    state = b2.get_state()
+    assert state["grid_grown"].any()
+    w3, b3 = make(plastic=False, padding=1)
+    b3.set_state(state)
+    assert b3.grid.cells == b2.grid.cells and np.array_equal(b3.grid.origin, b2.grid.origin)
+    w3.frame = n
+    for _ in range(n):
+        w3.step()
+    got, ref = snapshot(b3), snapshot(b1)
+    for key in ref:
+        assert np.array_equal(got[key], ref[key]), key
+    grown, kept = b3.grid, b3.get_state()
+    _, other = make(resolution=8, plastic=False)
+    with pytest.raises(StateMismatch, match="z"):
+        b3.set_state(other.get_state())
+    assert b3.grid.cells == grown.cells and np.array_equal(b3.grid.origin, grown.origin)
+    for key, value in b3.get_state().items():
+        assert np.array_equal(value, kept[key]), key

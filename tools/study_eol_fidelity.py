@@ -10,9 +10,10 @@ Cases:
   5 mm/s from then on), max and final penetration [% R], the smallest dt and its mean in contact.
 * ``spin``: a free sphere spinning at 2 rad/s (no gravity), resolution 8 / 12 / 16: node-mass
   angular momentum and kinetic energy against the continuum rigid values 2/5 M R^2 omega.
-* ``box`` / ``bem_cube`` / ``bunny``: ``scenes/eol_spinning_sphere.py`` with its ``--mesh`` set to a
-  trimesh box, the BEM authors' 770-vertex cube or their bunny: frames done within a wall-clock
-  budget, s/frame, the lowest point [mm], failure message.
+* ``box`` / ``box_edge`` / ``box_corner`` / ``bem_cube`` / ``bunny``: ``scenes/eol_spinning_sphere.py``
+  with its ``--mesh`` set to a trimesh box (axis-aligned; turned 45 deg about z so an edge leads;
+  turned again so a corner leads), the BEM authors' 770-vertex cube or their bunny: frames done
+  within a wall-clock budget, s/frame, the lowest point [mm], the grid's growth, failure message.
 * ``cylinder``: ``scenes/eol_plastic_cylinder.py``: the lowest point at the end [mm].
 """
 
@@ -140,7 +141,8 @@ def scene_run(case: str, scene: str, mesh: str | None, budget: float, frames: in
                 s_per_frame_mean=float(np.mean(frame_times)) if frame_times else None,
                 s_per_frame_max=float(np.max(frame_times)) if frame_times else None,
                 lowest_mm_min=min(lowest, default=None), lowest_mm_final=lowest[-1] if lowest else None,
-                steps=body.steps, h_mm=1000.0 * body.grid.h, warnings=warns, wall_s=time.perf_counter() - t0)
+                steps=body.steps, h_mm=1000.0 * body.grid.h, grid_cells=list(body.grid.cells),
+                warnings=warns, wall_s=time.perf_counter() - t0)
 
 
 def main(argv=None) -> None:
@@ -148,13 +150,20 @@ def main(argv=None) -> None:
 
     quiet_warp()
     ap = argparse.ArgumentParser()
-    ap.add_argument("--cases", default="slide,rest,spin,box,bem_cube,bunny,cylinder")
+    ap.add_argument("--cases", default="slide,rest,spin,box,box_edge,box_corner,bem_cube,bunny,cylinder")
     ap.add_argument("--tag", default="")
     ap.add_argument("--budget", type=float, default=300.0, help="wall-clock seconds per scene case")
     ap.add_argument("--out", default=None, help="append the JSON lines to this file too")
     args = ap.parse_args(argv)
-    box_path = Path(tempfile.mkdtemp()) / "box.obj"
-    trimesh.creation.box(extents=(1.0, 1.0, 1.0)).export(box_path)
+    tmp = Path(tempfile.mkdtemp())
+    boxes = {}
+    for name, turns in (("box", ()), ("box_edge", ((np.pi / 4, [0, 0, 1]),)),
+                        ("box_corner", ((np.pi / 4, [0, 0, 1]), (np.arctan(1.0 / np.sqrt(2.0)), [1, 0, 0])))):
+        m = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+        for angle, axis in turns:
+            m.apply_transform(trimesh.transformations.rotation_matrix(angle, axis))
+        boxes[name] = tmp / f"{name}.obj"
+        m.export(boxes[name])
     rows: list[dict] = []
     for case in args.cases.split(","):
         start = len(rows)
@@ -164,8 +173,8 @@ def main(argv=None) -> None:
             rows.append(ground_drop("rest", 1000.0, 6.0))
         elif case == "spin":
             rows.extend(spin())
-        elif case == "box":
-            rows.append(scene_run("box", "eol_spinning_sphere", str(box_path), args.budget))
+        elif case in boxes:
+            rows.append(scene_run(case, "eol_spinning_sphere", str(boxes[case]), args.budget))
         elif case == "bem_cube":
             rows.append(scene_run("bem_cube", "eol_spinning_sphere", str(BEM / "cube_reordered.obj"), args.budget))
         elif case == "bunny":

@@ -35,6 +35,7 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
+import trimesh
 import warp as wp
 
 from wsim import mesh as wmesh
@@ -43,7 +44,7 @@ from wsim.colliders import Surfaces
 from wsim.eol.advection import advect_arrays, check_scheme
 from wsim.eol.contact import ContactRows, ContactSystem, block_nodes, rows_from_blocks, solve_contact, surface_samples
 from wsim.eol.elastic import sample_forces
-from wsim.eol.grid import make_grid, material_samples
+from wsim.eol.grid import EolGrid, make_grid, material_samples
 from wsim.eol.split import lagrangian_fields, velocity_moments
 from wsim.eol.state import EolState
 from wsim.eol.timestep import adaptive_dt, elastic_dt_limit
@@ -115,7 +116,11 @@ class EolBody(Body):
             fields, 3x cost; limited so it adds no extrema: unlimited, it overshoots at contacts).
         cfl: alpha of Eq. (30), in (0, 1): the Eulerian velocity moves at most this many cells per step.
         plasticity: a :class:`Plasticity`, or None for a purely elastic body.
-        padding: empty cells around the body (room for Eulerian deformation).
+        padding: empty cells around the body at the start (room for Eulerian deformation). Where
+            material comes within a cell of the grid's boundary (a soft body squashed on impact
+            bulges sideways by more than the padding), the grid grows on that side by
+            ``max(2, padding)`` cells, up to 3x its first size per axis (``grid``, and the state's
+            ``grid_grown``); node values are copied exactly, so growing changes nothing else.
         dt_max: cap on the step [s] besides the frame and the elastic limit (None: none).
         elastic_safety: the elastic cap is this fraction of h / c1 (P-wave cell crossing time).
         quadrature: material points per cell axis (Gauss-Legendre).
@@ -153,8 +158,8 @@ class EolBody(Body):
     Loads: ``add_traction`` (surface tractions [Pa], world axes), ``add_body_force`` (accelerations
     [m/s^2]); ``load_impulse`` is the momentum they delivered. A body that starts more than half a
     cell inside a collider is refused at its first step (``InvalidParameter``); one whose material
-    comes within half a cell of its grid's boundary stops the run (``SimulationDiverged``,
-    "material left the grid").
+    needs a grid larger than 3x its first size on an axis (it flies apart) stops the run
+    (``SimulationDiverged``, "material left the grid").
     """
 
     def __init__(
@@ -236,7 +241,7 @@ class EolBody(Body):
             raise InvalidParameter(f"{p}: damping must be >= 0 and mass_floor in [0, 1]")
         vertices, faces = wmesh.surface_arrays(mesh, p)
         wmesh.check_surface(vertices, faces, name=p, closed=True)
-        self.grid = make_grid(vertices, resolution, padding)  # validates the resolution
+        self.grid = make_grid(vertices, resolution, padding)  # validates the resolution; grows with the body (_regrid)
         self.resolution = int(resolution)
         self.padding = padding
         self.quadrature = quadrature
@@ -251,15 +256,26 @@ class EolBody(Body):
         self.collision_block = int(collision_block)
         self._R0 = as_rotation(rotation, f"{p}: rotation")
         self._faces = faces.astype(np.int32)
+        # The tracked surface: the mesh with every edge longer than contact_spacing h split
+        # (trimesh keeps the given vertices first). Contact samples and their velocities are then
+        # tracked material points at the grid's resolution; on a coarse mesh (a box of 8 vertices)
+        # samples interpolated across a big triangle moved with its corners, not with the
+        # material under them, and the corners sank 2.5 cells into the ground (issue 16).
+        spacing = self._positive["contact_spacing"] * self.grid.h
+        tracked, self._tracked_faces = vertices, self._faces
+        if len(faces) and np.linalg.norm(vertices[faces[:, [1, 2, 0]]] - vertices[faces], axis=2).max() > spacing:
+            tracked, tf = trimesh.remesh.subdivide_to_size(vertices, faces, spacing)
+            self._tracked_faces = np.asarray(tf, dtype=np.int32)
+        self._n_surface = len(vertices)
         samples = material_samples(self.grid, vertices, faces, per_axis=quadrature)
         if len(samples.weights) == 0:
             raise InvalidParameter(f"{p}: no material point inside the mesh at resolution {resolution}")
         # the intermediate domain is centred on the centre of mass: rigid rotations turn about it
         self.com = samples.points.mean(axis=0)
-        self.grid = replace(self.grid, origin=self.grid.origin - self.com)
+        self.grid = self._grid0 = replace(self.grid, origin=self.grid.origin - self.com)
         self._z_points = samples.points - self.com
         self._volumes = samples.weights
-        self._z_vertices = vertices - self.com
+        self._z_vertices = np.asarray(tracked, dtype=np.float64) - self.com  # the given vertices first
         self.mass = material.rho * float(samples.weights.sum())
         self.dt_elastic = elastic_dt_limit(self.grid.h, material, self._positive["elastic_safety"])
         if self.damping > 0.0:  # explicit viscosity: diffusion number eta dt / (rho h^2) <= 1/12
@@ -277,7 +293,7 @@ class EolBody(Body):
     @property
     def rest_vertices(self) -> np.ndarray:
         """(V, 3) material-space vertex positions (centred on the centre of mass) [m]."""
-        return self._z_vertices
+        return self._z_vertices[: self._n_surface]
 
     @property
     def frame(self) -> tuple[np.ndarray, np.ndarray]:
@@ -317,9 +333,27 @@ class EolBody(Body):
         """The base signature plus the settings that change the meaning of the state."""
         sig = super().signature()
         sig.update(resolution=self.resolution, padding=self.padding, quadrature=self.quadrature,
-                   grid_cells=[int(c) for c in self.grid.cells], lagrangian=self.lagrangian, advection=self.advection,
+                   grid_cells=[int(c) for c in self._grid0.cells], lagrangian=self.lagrangian, advection=self.advection,
                    plastic=self.plasticity is not None, split=self.split, collision_block=self.collision_block)
         return sig
+
+    def set_state(self, arrays: dict[str, np.ndarray]) -> None:
+        """``Body.set_state`` on a grid grown as the saved state's was (``grid_grown``); a state
+        that does not fit leaves the body as it was."""
+        self._require_bound()
+        grown = np.asarray(arrays.get("grid_grown", self.state.grid_grown), dtype=np.int64).reshape(-1)
+        before = self.state.grid_grown.copy()
+        if grown.shape != before.shape or np.array_equal(grown, before):
+            super().set_state(arrays)
+            return
+        kept = self.get_state()
+        self._regrid(grown)
+        try:
+            super().set_state(arrays)
+        except Exception:
+            self._regrid(before)
+            super().set_state(kept)
+            raise
 
     def _state_loaded(self) -> None:
         """Forces, lumped masses and elastic energy of the loaded state (what the last step's force pass left)."""
@@ -328,7 +362,7 @@ class EolBody(Body):
     def intermediate_vertices(self) -> np.ndarray:
         """(V, 3) surface vertices in the intermediate domain y (Algorithm 2) [m]."""
         self._require_bound()
-        return self.state.y_vertices.numpy()
+        return self.state.y_vertices.numpy()[: self._n_surface]
 
     def points(self) -> np.ndarray:
         return self.intermediate_vertices() @ self.state.F.T + self.state.T
@@ -393,7 +427,9 @@ class EolBody(Body):
 
     def volume(self) -> float:
         """Enclosed volume of the tracked surface [m^3]."""
-        return wmesh.signed_volume(self.points(), self._faces)
+        self._require_bound()
+        x = self.state.y_vertices.numpy() @ self.state.F.T + self.state.T
+        return wmesh.signed_volume(x, self._tracked_faces)
 
     @property
     def elastic_energy(self) -> float:
@@ -474,7 +510,7 @@ class EolBody(Body):
         A = self._axes()  # velocity axes -> world
         work = []
         if self._tractions:
-            V = len(self._z_vertices)
+            V = self._n_surface
             tr = sum(self._load_value(fn(t), (V, 3), "a traction [Pa]", t) for fn in self._tractions)
             work.append((self.state.y_vertices, self.vertex_areas()[:, None] * tr))
         if self._point_forces:
@@ -522,7 +558,7 @@ class EolBody(Body):
     def bind(self, device: wp.Device, gravity: np.ndarray, up: np.ndarray) -> None:
         self._gravity = np.asarray(gravity, dtype=np.float64)
         self._up = np.asarray(up, dtype=np.float64)
-        grid = self.grid
+        self.grid = grid = self._grid0
         shape = grid.node_shape
         n = grid.n_nodes
         d = device
@@ -533,7 +569,7 @@ class EolBody(Body):
         self._z_pts = wp.array(self._z_points, **vec)
         self._vol = wp.array(self._volumes, dtype=wp.float64, device=d)
         self._z_vert = wp.array(self._z_vertices, **vec)
-        self._faces_dev = wp.array(self._faces, dtype=wp.vec3i, device=d)
+        self._faces_dev = wp.array(self._tracked_faces, dtype=wp.vec3i, device=d)
         # the state; the initial velocity is a rigid motion about the centre of mass
         v0, w0 = self.initial_velocity, self.initial_angular_velocity
         F = self._R0.copy() if self.lagrangian != "eulerian" else np.eye(3)
@@ -554,11 +590,30 @@ class EolBody(Body):
             Adot=cross_matrix(w0) @ F,  # affine
             dt_prev=self.dt_elastic,
         )
+        self._device = device
+        self._allocate_grid_arrays()
+        self._energy = wp.zeros(1, dtype=wp.float64, device=d)
+        self._chunks = ks.CHUNKS_CUDA if d.is_cuda else ks.CHUNKS_CPU
+        self._moments = wp.zeros(40, dtype=wp.float64, device=d)
+        self._vmax = wp.zeros(8, dtype=wp.float64, device=d)  # max |v*_0|, |v*_1| per axis; outside the grid
+        self._iters = wp.zeros(max(len(self._volumes), len(self._z_vertices)), dtype=wp.int32, device=d)
+        self._flowing = wp.zeros(1, dtype=wp.int32, device=d)
+        self._m_total = 0.0
+        self._load_force = np.zeros(3)
+        self._colliders: list[Collider] = []
+        self._force_pass()
+        if self._velocity_field is not None:
+            self._set_velocity_field()
+
+    def _allocate_grid_arrays(self) -> None:
+        """The node-sized arrays derived from the state (forces, masses) and the scratch, for the current grid."""
+        n, shape, d = self.grid.n_nodes, self.grid.node_shape, self._device
+        vec = dict(dtype=wp.vec3d, device=d)
+        self._grid = grid_struct(self.grid)
         # derived from the state by the force pass
         self._forces = wp.zeros(n, **vec)
         self._mass = wp.zeros(n, dtype=wp.float64, device=d)
         self._mass_real = wp.zeros(n, dtype=wp.float64, device=d)  # before the mass floor
-        self._energy = wp.zeros(1, dtype=wp.float64, device=d)
         # scratch
         self._w = wp.zeros(n, **vec)
         self._a = wp.zeros(n, **vec)
@@ -570,18 +625,64 @@ class EolBody(Body):
         self._w_hat = wp.zeros(n, **vec)  # the unconstrained w, a of a step in contact (QP re-solves)
         self._a_hat = wp.zeros(n, **vec)
         self._advect_scratch = (wp.zeros(shape, **vec), wp.zeros(shape, **vec)) if self.advection == "bfecc" else None
-        self._chunks = ks.CHUNKS_CUDA if d.is_cuda else ks.CHUNKS_CPU
-        self._moments = wp.zeros(40, dtype=wp.float64, device=d)
-        self._vmax = wp.zeros(8, dtype=wp.float64, device=d)  # max |v*_0|, |v*_1| per axis; outside the grid
-        self._iters = wp.zeros(max(len(self._volumes), len(self._z_vertices)), dtype=wp.int32, device=d)
-        self._flowing = wp.zeros(1, dtype=wp.int32, device=d)
-        self._m_total = 0.0
-        self._load_force = np.zeros(3)
-        self._colliders: list[Collider] = []
-        self._device = device
+
+    def _regrid(self, grown: np.ndarray) -> None:
+        """Move to the bind-time grid enlarged by ``grown`` = (cells added below x, y, z; above x, y, z).
+
+        The spacing is kept and the new grid's nodes include every old node, so z and v are copied
+        exactly; a new node's reference map continues its nearest old node's as a rest-like
+        extension (z = z_near + y - y_near) and its Eulerian velocity is zero (it holds no material).
+        Material points, surface and frame are positions in y and do not change. Everything sized
+        by the grid (masses, scratch, contact rows) is rebuilt and the force pass redone; the
+        contact warm start (row ids of the old layout) is dropped."""
+        st = self.state
+        grown = np.asarray(grown, dtype=np.int64)
+        old, old_grown = self.grid, st.grid_grown
+        base = self._grid0
+        new = EolGrid(origin=base.origin - base.h * grown[:3], h=base.h,
+                      cells=tuple(int(c) for c in np.array(base.cells) + grown[:3] + grown[3:]))
+        offset = grown[:3] - old_grown[:3]  # old node (i, j, k) is new node (i, j, k) + offset
+        ijk = np.stack(np.meshgrid(*(np.arange(k) for k in new.node_shape), indexing="ij"), axis=-1).reshape(-1, 3)
+        src = ijk - offset
+        near = np.clip(src, 0, np.array(old.node_shape) - 1)
+        inside = np.all(near == src, axis=1)
+        idx = old.node_index(near)
+        z_old, v_old = st.z.numpy(), st.v.numpy()
+        z = z_old[idx] + old.h * (src - near)  # rest-like extension outside the old grid
+        v = np.where(inside[:, None], v_old[idx], 0.0)
+        self.grid = new
+        d = self._device
+        st.z = wp.array(z, dtype=wp.vec3d, device=d)
+        st.v = wp.array(v, dtype=wp.vec3d, device=d)
+        st.grid_grown = grown.copy()
+        st.active_rows = np.zeros(0, dtype=np.int64)
+        self._allocate_grid_arrays()
+        if self._colliders:
+            self.attach_colliders(self._surfaces)
         self._force_pass()
-        if self._velocity_field is not None:
-            self._set_velocity_field()
+
+    def _grow_grid(self) -> bool:
+        """Grow the grid on every side that material (points or surface) came within one cell of:
+        by ``max(2, padding)`` cells, up to 3x the bind-time cells per axis. False if a side that
+        needs room has reached that limit (the body flies apart)."""
+        st, g = self.state, self.grid
+        y = np.concatenate([st.y_points.numpy(), st.y_vertices.numpy()])
+        if not np.all(np.isfinite(y)):
+            return False
+        c = (y - g.origin) / g.h
+        slack = 1e-6  # the host test must include every side the device test flagged
+        near_lo = c.min(axis=0) < 1.0 + slack
+        near_hi = c.max(axis=0) > np.array(g.node_shape) - 2.0 - slack
+        need = np.concatenate([near_lo, near_hi])
+        if not need.any():
+            return False
+        step = max(2, self.padding)
+        grown = st.grid_grown + step * need
+        cells = np.array(self._grid0.cells) + grown[:3] + grown[3:]
+        if np.any(cells > 3 * np.array(self._grid0.cells)):
+            return False
+        self._regrid(grown)
+        return True
 
     def _set_velocity_field(self) -> None:
         """Initial velocity = velocity + angular_velocity x (x - com) + velocity_field(x) at the nodes
@@ -619,7 +720,7 @@ class EolBody(Body):
         self._surfaces = surfaces
         self._colliders = list(surfaces)
         if self._colliders:  # contact samples and row accumulators, only for a scene with colliders
-            face, bary, share = surface_samples(self._z_vertices, self._faces,
+            face, bary, share = surface_samples(self._z_vertices, self._tracked_faces,
                                                 self._positive["contact_spacing"] * self.grid.h)
             d = self._device
             k = self.collision_block
@@ -764,12 +865,13 @@ class EolBody(Body):
             (L0, c0), (L1, c1) = self._split(w0, w1)
             if attempt == 0:
                 self._vmax.zero_()
-                # material within half a cell of the grid's boundary (tracked at the end of the last
-                # step): the grid can no longer hold it (it flies apart, or deforms beyond the padding).
-                # Read back with the velocity maxima; a QP re-solve does not change it.
+                # material within one cell of the grid's boundary (tracked at the end of the last
+                # step): the grid grows on that side (``_grow_grid``) and the step starts again on
+                # it, unless the grid has reached its limit (the body flies apart). Read back with
+                # the velocity maxima; a QP re-solve does not change it.
                 for slot, y in ((6, self.state.y_vertices), (7, self.state.y_points)):
                     wp.launch(kl.outside_margin, dim=y.shape[0], device=d,
-                              inputs=[y, self._grid, wp.float64(0.5), self._vmax, slot])
+                              inputs=[y, self._grid, wp.float64(1.0), self._vmax, slot])
             else:
                 self._vmax[:6].zero_()
             wp.launch(ks.eulerian_residual, dim=self._chunks, device=d,
@@ -777,12 +879,14 @@ class EolBody(Body):
                               wp.vec3d(*c1), _mat(np.linalg.inv(self._F_L())), self._chunks, self._v0, self._v1, self._vmax])
             vmax = self._vmax.numpy()
             if vmax[6] > 0.0 or vmax[7] > 0.0:
+                if np.all(np.isfinite(vmax[6:])) and self._grow_grid():
+                    return  # nothing advanced: the caller steps again on the larger grid
                 what = "surface vertices" if vmax[6] > 0.0 else "material points"
                 self._failure = ("material outside the grid",
-                                 (f"material left the grid: {what} came within half a cell of the grid boundary "
+                                 (f"material left the grid: {what} came within a cell of the grid boundary "
                                   f"({max(vmax[6], vmax[7]):.3g} cells past that margin) at step {st.steps} "
-                                  f"(t = {st.time:.6g} s); the body flies apart or deforms beyond padding = "
-                                  f"{self.padding} cells"), "diverging")
+                                  f"(t = {st.time:.6g} s) after the grid had grown to 3x its first size on that "
+                                  f"axis ({self.grid.cells} cells): the body flies apart"), "diverging")
                 return
             vmax = vmax[:6]
             if not np.all(np.isfinite(vmax)) or not np.all(np.isfinite(L0 + L1)):

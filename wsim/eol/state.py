@@ -35,6 +35,8 @@ class EolState:
         active_rows: ids of the contact rows active in the last QP (its warm start; variable length).
         contact_impulse, gravity_impulse, load_impulse: (3,) momentum delivered by contact, by gravity and
             by the loads (``add_traction``, ``add_body_force``) so far [kg m/s].
+        grid_grown: (6,) cells the grid has grown by since ``bind``, below x, y, z and above x, y, z
+            (``EolBody._regrid``; z and v are sized by the grown grid).
         failure: utf-8 bytes of "quantity\\x1fdetail\\x1freason" once a step failed (empty: none).
     """
 
@@ -57,6 +59,7 @@ class EolState:
     contact_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
     gravity_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
     load_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    grid_grown: np.ndarray = field(default_factory=lambda: np.zeros(6, dtype=np.int64))
     failure: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.uint8))
 
     def get_failure(self) -> tuple[str, str, str] | None:
