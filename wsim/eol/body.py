@@ -559,7 +559,6 @@ class EolBody(Body):
         self._gravity = np.asarray(gravity, dtype=np.float64)
         self._up = np.asarray(up, dtype=np.float64)
         self.grid = grid = self._grid0
-        shape = grid.node_shape
         n = grid.n_nodes
         d = device
         y_nodes = grid.node_positions()
