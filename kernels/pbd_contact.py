@@ -138,3 +138,73 @@ def mesh_contact(
     c = (target - x_pred[i]) + friction_correction(dx_rel, n_world, depth, mu) - dx[i]
     dx[i] = dx[i] + c
     dxc[i] = dxc[i] + c
+
+
+@wp.kernel
+def surface_positions(x_pred: wp.array(dtype=wp.vec3), dx: wp.array(dtype=wp.vec3), out: wp.array(dtype=wp.vec3)):
+    """The current positions x_pred + dx of the surface particles (the first len(out)): the points
+    of a body's contact mesh, refit after this."""
+    i = wp.tid()
+    out[i] = x_pred[i] + dx[i]
+
+
+@wp.kernel
+def body_contact(
+    x_pred: wp.array(dtype=wp.vec3),
+    dx: wp.array(dtype=wp.vec3),
+    dxc: wp.array(dtype=wp.vec3),
+    x_prev: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    mesh: wp.uint64,
+    faces: wp.array(dtype=wp.vec3i),
+    dx_b: wp.array(dtype=wp.vec3),
+    dxc_b: wp.array(dtype=wp.vec3),
+    x_prev_b: wp.array(dtype=wp.vec3),
+    inv_mass_b: wp.array(dtype=float),
+    margin: float,
+    max_dist: float,
+    mu: float,
+):
+    """A surface particle p of body A against the surface of body B (``mesh``: B's current surface
+    positions, ``faces`` its triangles): the point-triangle contact constraint
+    C = n . (p - s) - margin >= 0, s = sum_k b_k q_k the nearest point of B's surface (barycentric
+    b_k on the triangle q_0 q_1 q_2) and n the outward normal there ([PBD] §3.5, applied to two
+    deformable bodies). With the inverse masses w_p and w_k and W = w_p + sum_k b_k^2 w_k, a violated
+    constraint moves p by w_p lambda n and q_k by -b_k w_k lambda n, lambda = -C / W: equal and
+    opposite momenta, and the arm p - s along n (no torque error). Coulomb friction as against a
+    collider, on the slip of p relative to s over the substep, divided between the bodies the same
+    way. One thread per particle of A; B's particles take atomic adds (several of A's particles
+    may press on one triangle of B)."""
+    i = wp.tid()
+    w_p = inv_mass[i]
+    p = x_pred[i] + dx[i]
+    q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
+    if not q.result:
+        return
+    s = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+    d = p - s
+    dist = wp.length(d)
+    n = wp.mesh_eval_face_normal(mesh, q.face)
+    if dist > 1.0e-9:
+        n = d / dist * wp.sign(q.sign)
+    depth = margin - dist * wp.sign(q.sign)
+    if depth <= 0.0:
+        return
+    tri = faces[q.face]
+    b = wp.vec3(q.u, q.v, 1.0 - q.u - q.v)
+    w = w_p
+    for k in range(3):
+        w += b[k] * b[k] * inv_mass_b[tri[k]]
+    if w <= 0.0:
+        return
+    # the slip of p relative to the surface point over the substep, after the normal correction
+    s_prev = b[0] * x_prev_b[tri[0]] + b[1] * x_prev_b[tri[1]] + b[2] * x_prev_b[tri[2]]
+    rel = (p + n * depth - x_prev[i]) - (s - s_prev)
+    c = n * depth + friction_correction(rel, n, depth, mu)  # the change of p - s that is wanted
+    dp = c * (w_p / w)
+    dx[i] = dx[i] + dp
+    dxc[i] = dxc[i] + dp
+    for k in range(3):
+        dq = -c * (b[k] * inv_mass_b[tri[k]] / w)
+        wp.atomic_add(dx_b, tri[k], dq)
+        wp.atomic_add(dxc_b, tri[k], dq)

@@ -63,8 +63,9 @@ class World:
         gravity: gravitational acceleration [m/s^2]; None means 9.81 m/s^2 down the up axis.
         device: Warp device ("cpu", "cuda:0", ...); None picks cuda:0 when present, else cpu.
         up_axis: "Y" or "Z", the axis the scene is built in (ground planes default to it).
-        body_contact: BEM bodies of one dt collide with each other (``wsim.contact``); False lets
-            them pass through each other as before.
+        body_contact: bodies of one method collide with each other: BEM bodies of one dt
+            (``wsim.contact``, one constraint solve per step) and PBD bodies (``wsim.pbd.contact``,
+            substeps in lockstep); False lets them pass through each other as before.
     """
 
     def __init__(
@@ -155,6 +156,9 @@ class World:
             for body in self.bodies:
                 body.attach_colliders(self.surfaces)
             links = []
+            # PBD bodies that can touch step in lockstep (wsim.pbd.contact)
+            pbd = [b for b in self.bodies if hasattr(b, "advance_together")] if self.body_contact else []
+            self._lockstep = pbd if len(pbd) > 1 else []
             if self.body_contact:  # bodies that can touch: participants of one dt
                 by_dt: dict[float, list[Body]] = {}
                 for b in self.bodies:
@@ -189,10 +193,12 @@ class World:
         t0 = self.frame / self.fps
         t1 = (self.frame + 1) / self.fps
         self.surfaces.new_frame()
-        grouped = {id(b) for bodies, _ in self._groups for b in bodies}
+        grouped = {id(b) for bodies, _ in self._groups for b in bodies} | {id(b) for b in self._lockstep}
         for body in self.bodies:
             if id(body) not in grouped:
                 body.advance(t0, t1)
+        if self._lockstep:
+            type(self._lockstep[0]).advance_together(self._lockstep, t0, t1)
         for bodies, joints in self._groups:
             _advance_group(bodies, joints, t1, self.device, self.body_contact)
         self.frame += 1

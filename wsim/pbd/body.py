@@ -451,6 +451,7 @@ class PbdBody(Body):
         self._mesh_colliders: list[_DeviceMeshCollider] = []
         self._layout: tuple[int, float] | None = None
         self._graph = None
+        self._contact_mesh: wp.Mesh | None = None  # its surface, for contact with other bodies (wsim.pbd.contact)
 
     def attach_colliders(self, surfaces: Surfaces) -> None:
         self._surfaces = surfaces
@@ -501,6 +502,13 @@ class PbdBody(Body):
                 )
 
     # ---------------------------------------------------------------- stepping
+    @staticmethod
+    def advance_together(bodies: Sequence[PbdBody], t0: float, t1: float) -> None:
+        """Advance PBD bodies of one World that may touch each other (``wsim.pbd.contact``)."""
+        from wsim.pbd.contact import advance_together
+
+        advance_together(bodies, t0, t1)
+
     def advance(self, t0: float, t1: float) -> None:
         # (f + 1)/fps - f/fps differs from frame to frame in its last bits; round it so the
         # per-frame buffers and the CUDA graph (which bakes h in) are built once, not every frame
@@ -562,68 +570,85 @@ class PbdBody(Body):
             wp.launch(kp.moments, dim=n_blocks, inputs=args, block_dim=kp.MOMENT_BLOCK)
 
     def _launch_frame(self, substeps: int, h: float) -> None:
+        for s in range(1, substeps + 1):
+            self._substep_begin(s, h)
+            for it in range(self.iterations):
+                self._substep_iteration(s, it, h)
+            self._substep_end(h)
+
+    def _substep_begin(self, s: int, h: float) -> None:
+        """Substep s (1-based) of length h: predict positions, reset the multipliers."""
         m = self.model
         n = m.n_particles
         k = len(self._handle_idx)
-        n_blocks = -(-n // kp.MOMENT_BLOCK) * kp.MOMENT_BLOCK
-        for s in range(1, substeps + 1):
+        wp.launch(
+            kp.predict_positions,
+            dim=n,
+            inputs=[self.x, self.v, self.x_prev, self.x_pred, self.dx, self.inv_mass, self._handle_slot,
+                    self._handle_targets_d, (s - 1) * k, self._gravity, self.drag, h],
+        )
+        if self._planes or self._mesh_colliders or self._contact_mesh is not None:
+            self.dxc.zero_()  # contact corrections of this substep (colliders and other bodies)
+        if self.conserve_angular_momentum:
+            self._moments.zero_()
+            self._launch_moments(0, self._moment_blocks())
+        self._lam.zero_()
+        if m.volume is not None:
+            self._vol_buf.zero_()
+
+    def _moment_blocks(self) -> int:
+        return -(-self.model.n_particles // kp.MOMENT_BLOCK) * kp.MOMENT_BLOCK
+
+    def _substep_iteration(self, s: int, it: int, h: float) -> None:
+        """Iteration ``it`` of substep s: the constraint families, the volume, the colliders."""
+        m = self.model
+        n = m.n_particles
+        for fam in self._families:
+            self._launch_family(fam, h)
+        if m.volume is not None:
+            vol = m.volume
             wp.launch(
-                kp.predict_positions,
-                dim=n,
-                inputs=[self.x, self.v, self.x_prev, self.x_pred, self.dx, self.inv_mass, self._handle_slot,
-                        self._handle_targets_d, (s - 1) * k, self._gravity, self.drag, h],
+                kp.volume_gradient,
+                dim=-(-m.n_surface // kp.VOLUME_BLOCK) * kp.VOLUME_BLOCK,
+                inputs=[self.x_pred, self.dx, self.inv_mass, self._faces_d, self._vf_start, self._vf, self._vol_grad, self._vol_sums, it],
+                block_dim=kp.VOLUME_BLOCK,
             )
-            if self._planes or self._mesh_colliders:
-                self.dxc.zero_()
-            if self.conserve_angular_momentum:
-                self._moments.zero_()
-                self._launch_moments(0, n_blocks)
-            self._lam.zero_()
-            if m.volume is not None:
-                self._vol_buf.zero_()
-            for it in range(self.iterations):
-                for fam in self._families:
-                    self._launch_family(fam, h)
-                if m.volume is not None:
-                    vol = m.volume
-                    wp.launch(
-                        kp.volume_gradient,
-                        dim=-(-m.n_surface // kp.VOLUME_BLOCK) * kp.VOLUME_BLOCK,
-                        inputs=[self.x_pred, self.dx, self.inv_mass, self._faces_d, self._vf_start, self._vf, self._vol_grad, self._vol_sums, it],
-                        block_dim=kp.VOLUME_BLOCK,
-                    )
-                    wp.launch(
-                        kp.volume_apply,
-                        dim=m.n_surface,
-                        inputs=[
-                            self.dx,
-                            self.inv_mass,
-                            self._vol_grad,
-                            self._vol_sums,
-                            self._vol_lam,
-                            it,
-                            wp.float64(vol.target_volume),
-                            wp.float64(vol.compliance),
-                            wp.float64(h),
-                        ],
-                    )
-                for normal, height, friction in self._planes:
-                    wp.launch(
-                        kc.ground_contact,
-                        dim=n,
-                        inputs=[self.dx, self.dxc, self.x_prev, self.x_pred, self.inv_mass, wp.vec3(*normal.astype(np.float32)), height, self.contact_margin, friction],
-                    )
-                for dc in self._mesh_colliders:
-                    wp.launch(
-                        kc.mesh_contact,
-                        dim=n,
-                        inputs=[self.dx, self.dxc, self.x_prev, self.x_pred, self.inv_mass, dc.mesh.id, dc.transforms, dc.inverses, s, self.contact_margin, dc.max_dist, dc.friction],
-                    )
-            wp.launch(kp.update_velocities, dim=n, inputs=[self.x, self.x_pred, self.dx, self.v, 1.0 / h])
-            if self.conserve_angular_momentum:
-                self._launch_moments(kp.MOMENT_SUMS, n_blocks)
-                wp.launch(kp.restore_angular_momentum, dim=n,
-                          inputs=[self.x, self.v, self.inv_mass, self._moments, wp.float64(1.0 / h)])
+            wp.launch(
+                kp.volume_apply,
+                dim=m.n_surface,
+                inputs=[
+                    self.dx,
+                    self.inv_mass,
+                    self._vol_grad,
+                    self._vol_sums,
+                    self._vol_lam,
+                    it,
+                    wp.float64(vol.target_volume),
+                    wp.float64(vol.compliance),
+                    wp.float64(h),
+                ],
+            )
+        for normal, height, friction in self._planes:
+            wp.launch(
+                kc.ground_contact,
+                dim=n,
+                inputs=[self.dx, self.dxc, self.x_prev, self.x_pred, self.inv_mass, wp.vec3(*normal.astype(np.float32)), height, self.contact_margin, friction],
+            )
+        for dc in self._mesh_colliders:
+            wp.launch(
+                kc.mesh_contact,
+                dim=n,
+                inputs=[self.dx, self.dxc, self.x_prev, self.x_pred, self.inv_mass, dc.mesh.id, dc.transforms, dc.inverses, s, self.contact_margin, dc.max_dist, dc.friction],
+            )
+
+    def _substep_end(self, h: float) -> None:
+        """Velocities from the positions; the angular momentum restored net of contact."""
+        n = self.model.n_particles
+        wp.launch(kp.update_velocities, dim=n, inputs=[self.x, self.x_pred, self.dx, self.v, 1.0 / h])
+        if self.conserve_angular_momentum:
+            self._launch_moments(kp.MOMENT_SUMS, self._moment_blocks())
+            wp.launch(kp.restore_angular_momentum, dim=n,
+                      inputs=[self.x, self.v, self.inv_mass, self._moments, wp.float64(1.0 / h)])
 
     def check_finite(self, frame: int, time: float) -> None:
         self.flags.zero_()  # the array's own device

@@ -1,0 +1,122 @@
+"""Contact between PBD bodies of one World (issue 18: same-method contact).
+
+Bodies that may touch step their substeps in lockstep (the largest substep count of the group, so
+the shortest h): each substep predicts every body, then each constraint iteration runs every
+body's own constraints and colliders and, for every pair of bodies whose frame-swept boxes
+overlap, projects the surface particles of each body out of the other's current surface
+(``wsim.kernels.pbd_contact.body_contact``: point-triangle constraints with both bodies' inverse
+masses, so the impulses are equal and opposite, and Coulomb friction). A body's surface is a Warp
+mesh built from its positions once per frame and refit before each use. Contact corrections go
+to ``dxc`` like collider contact, so ``conserve_angular_momentum`` keeps them as external.
+
+The group runs without a CUDA graph (a frame with a pair in reach); bodies with no partner in
+reach this frame advance on their own, with their graph.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Sequence
+
+import numpy as np
+import warp as wp
+
+from wsim.contact import DEFAULT_FRICTION
+from wsim.kernels import pbd_contact as kc
+
+if TYPE_CHECKING:
+    from wsim.pbd.body import PbdBody
+
+
+def _friction(a: PbdBody, b: PbdBody) -> float:
+    fa, fb = getattr(a, "friction", None), getattr(b, "friction", None)
+    return max(DEFAULT_FRICTION if fa is None else fa, DEFAULT_FRICTION if fb is None else fb)
+
+
+def _swept_box(body: PbdBody, frame_dt: float, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """Box of the body's surface now, grown by how far it can move this frame (its fastest
+    particle and gravity) and by ``reach``."""
+    x = body.x.numpy()[: body.model.n_surface]
+    v = body.v.numpy()
+    grow = float(np.abs(v).max(initial=0.0)) * frame_dt + 0.5 * float(np.linalg.norm(body._gravity)) * frame_dt**2 + reach
+    return x.min(axis=0) - grow, x.max(axis=0) + grow
+
+
+def candidate_pairs(bodies: Sequence[PbdBody], frame_dt: float) -> list[tuple[PbdBody, PbdBody]]:
+    """Pairs whose swept boxes overlap this frame (the broad phase, on the host once per frame)."""
+    boxes = [_swept_box(b, frame_dt, b.contact_margin) for b in bodies]
+    out = []
+    for i in range(len(bodies)):
+        for j in range(i + 1, len(bodies)):
+            (lo_i, hi_i), (lo_j, hi_j) = boxes[i], boxes[j]
+            if np.all(hi_i >= lo_j) and np.all(hi_j >= lo_i):
+                out.append((bodies[i], bodies[j]))
+    return out
+
+
+def _build_mesh(body: PbdBody) -> None:
+    """The body's surface as a Warp mesh on its current positions (BVH built now, refit later)."""
+    n = body.model.n_surface
+    if getattr(body, "_contact_points", None) is None:
+        body._contact_points = wp.zeros(n, dtype=wp.vec3, device=body._device)
+        faces = np.ascontiguousarray(body.model.faces, dtype=np.int32)
+        body._contact_faces = wp.array(faces, dtype=wp.vec3i, device=body._device)
+        body._contact_indices = wp.array(faces.ravel(), dtype=wp.int32, device=body._device)
+    wp.copy(body._contact_points, body.x, count=n)
+    body._contact_mesh = wp.Mesh(points=body._contact_points, indices=body._contact_indices)
+    x = body.x.numpy()[:n]
+    # how far from its surface a query may look: a particle deep inside is still found
+    body._contact_reach = float(np.linalg.norm(x.max(axis=0) - x.min(axis=0)))
+
+
+def _refit(body: PbdBody) -> None:
+    wp.launch(kc.surface_positions, dim=body.model.n_surface, device=body._device,
+              inputs=[body.x_pred, body.dx, body._contact_points])
+    body._contact_mesh.refit()
+
+
+def _project(a: PbdBody, b: PbdBody, mu: float) -> None:
+    """a's surface particles out of b's surface (b's mesh refit to its current positions)."""
+    _refit(b)
+    reach = b._contact_reach + max(a.contact_margin, b.contact_margin)
+    wp.launch(kc.body_contact, dim=a.model.n_surface, device=a._device,
+              inputs=[a.x_pred, a.dx, a.dxc, a.x_prev, a.inv_mass, b._contact_mesh.id, b._contact_faces, b.dx, b.dxc,
+                      b.x_prev, b.inv_mass, max(a.contact_margin, b.contact_margin), reach, mu])
+
+
+def advance_together(bodies: Sequence[PbdBody], t0: float, t1: float) -> None:
+    """Advance PBD bodies that may touch from t0 to t1 (see the module docstring)."""
+    frame_dt = round(t1 - t0, 12)
+    pairs = candidate_pairs(bodies, frame_dt)
+    touching = {id(b) for pair in pairs for b in pair}
+    for b in bodies:
+        if id(b) not in touching:
+            if b._contact_mesh is not None:  # back on its own: no contact corrections left over
+                b._contact_mesh = None
+                b.dxc.zero_()
+            b.advance(t0, t1)
+    group = [b for b in bodies if id(b) in touching]
+    if not group:
+        return
+    substeps = max(b.substeps_for(frame_dt) for b in group)
+    h = frame_dt / substeps
+    device = group[0]._device
+    with wp.ScopedDevice(device):
+        for b in group:
+            if b._layout != (substeps, h):
+                b._prepare_layout(substeps, h)
+            b._upload_frame_inputs(t0, substeps, h)
+            _build_mesh(b)
+        mus = [_friction(a, b) for a, b in pairs]
+        iterations = max(b.iterations for b in group)
+        for s in range(1, substeps + 1):
+            for b in group:
+                b._substep_begin(s, h)
+            for it in range(iterations):
+                for b in group:
+                    if it < b.iterations:
+                        b._substep_iteration(s, it, h)
+                for (a, b), mu in zip(pairs, mus):
+                    _project(a, b, mu)
+                    _project(b, a, mu)
+            for b in group:
+                b._substep_end(h)
