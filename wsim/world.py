@@ -159,6 +159,7 @@ class World:
             # PBD bodies that can touch step in lockstep (wsim.pbd.contact)
             pbd = [b for b in self.bodies if hasattr(b, "advance_together")] if self.body_contact else []
             self._lockstep = pbd if len(pbd) > 1 else []
+            self._lockstep_graphs: dict = {}  # the recorded lockstep frame (CUDA)
             if self.body_contact:  # bodies that can touch: participants of one dt
                 by_dt: dict[float, list[Body]] = {}
                 for b in self.bodies:
@@ -198,7 +199,7 @@ class World:
             if id(body) not in grouped:
                 body.advance(t0, t1)
         if self._lockstep:
-            type(self._lockstep[0]).advance_together(self._lockstep, t0, t1)
+            type(self._lockstep[0]).advance_together(self._lockstep, t0, t1, self._lockstep_graphs)
         for bodies, joints in self._groups:
             _advance_group(bodies, joints, t1, self.device, self.body_contact)
         self.frame += 1

@@ -503,11 +503,12 @@ class PbdBody(Body):
 
     # ---------------------------------------------------------------- stepping
     @staticmethod
-    def advance_together(bodies: Sequence[PbdBody], t0: float, t1: float) -> None:
-        """Advance PBD bodies of one World that may touch each other (``wsim.pbd.contact``)."""
+    def advance_together(bodies: Sequence[PbdBody], t0: float, t1: float, graphs: dict | None = None) -> None:
+        """Advance PBD bodies of one World that may touch each other (``wsim.pbd.contact``);
+        ``graphs``: the caller's store for the recorded lockstep frame."""
         from wsim.pbd.contact import advance_together
 
-        advance_together(bodies, t0, t1)
+        advance_together(bodies, t0, t1, graphs)
 
     def advance(self, t0: float, t1: float) -> None:
         # (f + 1)/fps - f/fps differs from frame to frame in its last bits; round it so the

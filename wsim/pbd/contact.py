@@ -9,8 +9,10 @@ masses, so the impulses are equal and opposite, and Coulomb friction). A body's 
 mesh built from its positions once per frame and refit before each use. Contact corrections go
 to ``dxc`` like collider contact, so ``conserve_angular_momentum`` keeps them as external.
 
-The group runs without a CUDA graph (a frame with a pair in reach); bodies with no partner in
-reach this frame advance on their own, with their graph.
+On CUDA a lockstep frame is recorded once as a CUDA graph and replayed while the same pairs are
+in reach with the same substeps (the bodies' meshes are then kept and only refit, so their BVH
+topology is the one of the frame it was built in); bodies with no partner in reach this frame
+advance on their own, with their own graph.
 """
 
 from __future__ import annotations
@@ -83,8 +85,26 @@ def _project(a: PbdBody, b: PbdBody, mu: float) -> None:
                       b.x_prev, b.inv_mass, max(a.contact_margin, b.contact_margin), reach, mu])
 
 
-def advance_together(bodies: Sequence[PbdBody], t0: float, t1: float) -> None:
-    """Advance PBD bodies that may touch from t0 to t1 (see the module docstring)."""
+def _lockstep_frame(group: Sequence[PbdBody], pairs: Sequence[tuple[PbdBody, PbdBody]], mus: Sequence[float],
+                    substeps: int, h: float) -> None:
+    iterations = max(b.iterations for b in group)
+    for s in range(1, substeps + 1):
+        for b in group:
+            b._substep_begin(s, h)
+        for it in range(iterations):
+            for b in group:
+                if it < b.iterations:
+                    b._substep_iteration(s, it, h)
+            for (a, b), mu in zip(pairs, mus):
+                _project(a, b, mu)
+                _project(b, a, mu)
+        for b in group:
+            b._substep_end(h)
+
+
+def advance_together(bodies: Sequence[PbdBody], t0: float, t1: float, graphs: dict | None = None) -> None:
+    """Advance PBD bodies that may touch from t0 to t1 (see the module docstring). ``graphs`` is
+    where the caller keeps the recorded lockstep frame between calls (None: not recorded)."""
     frame_dt = round(t1 - t0, 12)
     pairs = candidate_pairs(bodies, frame_dt)
     touching = {id(b) for pair in pairs for b in pair}
@@ -100,23 +120,30 @@ def advance_together(bodies: Sequence[PbdBody], t0: float, t1: float) -> None:
     substeps = max(b.substeps_for(frame_dt) for b in group)
     h = frame_dt / substeps
     device = group[0]._device
+    mus = [_friction(a, b) for a, b in pairs]
+    key = (tuple(id(b) for b in group), tuple((id(a), id(b)) for a, b in pairs), substeps, h)
+    use_graph = graphs is not None and device.is_cuda and all(b.use_graph for b in group)
     with wp.ScopedDevice(device):
         for b in group:
             if b._layout != (substeps, h):
                 b._prepare_layout(substeps, h)
             b._upload_frame_inputs(t0, substeps, h)
+        recorded = graphs.get("frame") if use_graph else None
+        if recorded is not None and recorded[0] == key:
+            for b, mesh in zip(group, recorded[2]):
+                b._contact_mesh = mesh  # the meshes the graph queries (their ids are baked in)
+            wp.capture_launch(recorded[1])
+            return
+        for b in group:
             _build_mesh(b)
-        mus = [_friction(a, b) for a, b in pairs]
-        iterations = max(b.iterations for b in group)
-        for s in range(1, substeps + 1):
-            for b in group:
-                b._substep_begin(s, h)
-            for it in range(iterations):
-                for b in group:
-                    if it < b.iterations:
-                        b._substep_iteration(s, it, h)
-                for (a, b), mu in zip(pairs, mus):
-                    _project(a, b, mu)
-                    _project(b, a, mu)
-            for b in group:
-                b._substep_end(h)
+        if not use_graph:
+            _lockstep_frame(group, pairs, mus, substeps, h)
+            return
+        from wsim.kernels import pbd as kp
+
+        wp.load_module(kp, device=device)
+        wp.load_module(kc, device=device)
+        with wp.ScopedCapture(device=device) as capture:
+            _lockstep_frame(group, pairs, mus, substeps, h)
+        graphs["frame"] = (key, capture.graph, [b._contact_mesh for b in group])  # keeps the meshes alive
+        wp.capture_launch(capture.graph)
