@@ -208,3 +208,60 @@ def body_contact(
         dq = -c * (b[k] * inv_mass_b[tri[k]] / w)
         wp.atomic_add(dx_b, tri[k], dq)
         wp.atomic_add(dxc_b, tri[k], dq)
+
+
+@wp.kernel
+def lerp_points(p0: wp.array(dtype=wp.vec3), p1: wp.array(dtype=wp.vec3), s: float, out: wp.array(dtype=wp.vec3)):
+    """out = p0 + s (p1 - p0): a moving surface's vertices at a fraction s of the frame."""
+    i = wp.tid()
+    out[i] = p0[i] + s * (p1[i] - p0[i])
+
+
+@wp.kernel
+def moving_surface_contact(
+    x_pred: wp.array(dtype=wp.vec3),
+    dx: wp.array(dtype=wp.vec3),
+    dxc: wp.array(dtype=wp.vec3),
+    x_prev: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    mesh: wp.uint64,
+    faces: wp.array(dtype=wp.vec3i),
+    v_prev: wp.array(dtype=wp.vec3),
+    margin: float,
+    max_dist: float,
+    mu: float,
+    inv_h: float,
+    impulse: wp.array(dtype=wp.vec3d),
+):
+    """A particle against another body's surface that moves on its own this frame (``mesh``: its
+    vertices at the end of the substep; ``v_prev`` at the start): the collider projection with
+    friction relative to the surface's motion, and the momentum the particle received,
+    m (dx change) / h, taken from the surface's vertices by their barycentric weights into
+    ``impulse`` [N s] (handed to the other body by the World: explicit two-way coupling)."""
+    i = wp.tid()
+    w_p = inv_mass[i]
+    if w_p == 0.0:
+        return
+    p = x_pred[i] + dx[i]
+    q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
+    if not q.result:
+        return
+    s = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+    d = p - s
+    dist = wp.length(d)
+    n = wp.mesh_eval_face_normal(mesh, q.face)
+    if dist > 1.0e-9:
+        n = d / dist * wp.sign(q.sign)
+    depth = margin - dist * wp.sign(q.sign)
+    if depth <= 0.0:
+        return
+    tri = faces[q.face]
+    b = wp.vec3(q.u, q.v, 1.0 - q.u - q.v)
+    s_prev = b[0] * v_prev[tri[0]] + b[1] * v_prev[tri[1]] + b[2] * v_prev[tri[2]]
+    rel = (p + n * depth - x_prev[i]) - (s - s_prev)
+    c = n * depth + friction_correction(rel, n, depth, mu)
+    dx[i] = dx[i] + c
+    dxc[i] = dxc[i] + c
+    J = wp.vec3d(c * (inv_h / w_p))
+    for k in range(3):
+        wp.atomic_sub(impulse, tri[k], wp.float64(b[k]) * J)

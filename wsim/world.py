@@ -195,13 +195,31 @@ class World:
         t1 = (self.frame + 1) / self.fps
         self.surfaces.new_frame()
         grouped = {id(b) for bodies, _ in self._groups for b in bodies} | {id(b) for b in self._lockstep}
+        pushed = [b for b in self.bodies if hasattr(b, "add_vertex_impulses")] if self.body_contact else []
+        pushers = [b for b in self.bodies if hasattr(b, "set_moving_surfaces")] if pushed else []
+        start = {id(b): b.points() for b in pushed} if pushers else {}
+        # bodies that others are coupled to explicitly go first (BEM), then the rest (PBD)
+        late = {id(b) for b in pushers}
         for body in self.bodies:
-            if id(body) not in grouped:
+            if id(body) not in grouped and id(body) not in late:
+                body.advance(t0, t1)
+        for bodies, joints in self._groups:
+            _advance_group(bodies, joints, t1, self.device, self.body_contact)
+        if pushers:
+            _couple_surfaces(pushers, pushed, start, t1 - t0, float(np.linalg.norm(self.gravity)))
+        for body in self.bodies:
+            if id(body) not in grouped and id(body) in late:
                 body.advance(t0, t1)
         if self._lockstep:
             type(self._lockstep[0]).advance_together(self._lockstep, t0, t1, self._lockstep_graphs)
-        for bodies, joints in self._groups:
-            _advance_group(bodies, joints, t1, self.device, self.body_contact)
+        if pushers:
+            impulses: dict[int, np.ndarray] = {}
+            for b in pushers:
+                for key, J in b.moving_surface_impulses().items():
+                    impulses[key] = impulses.get(key, 0.0) + J
+            for b in pushed:
+                if id(b) in impulses:
+                    b.add_vertex_impulses(impulses[id(b)], t1 - t0)
         self.frame += 1
 
     def _check_frame(self) -> None:
@@ -314,3 +332,27 @@ def _advance_group(bodies: list[Body], joints: list, t1: float, device, contact:
     margin = min(b.contact_distance for b in bodies) if contact else None
     while bodies[0].steps < target and not any(b.failed for b in bodies):
         wc.solve_group(bodies, joints, device, tol, iterations, bodies[0].steps + 1, contact_margin=margin)
+
+
+def _couple_surfaces(pushers: Sequence[Body], pushed: Sequence[Body], start: dict[int, np.ndarray], frame_dt: float,
+                     g: float) -> None:
+    """Explicit two-way coupling across methods (issue 18): each body that takes moving surfaces
+    (PBD) gets the surfaces of the bodies it may reach this frame (their vertices at the frame's
+    start and end: those bodies have already stepped), with the larger of the two frictions. What
+    it pushes them with comes back per vertex after its step and is delivered over the next frame
+    (``add_vertex_impulses``): one frame late, the momentum exact."""
+    from wsim.contact import DEFAULT_FRICTION
+
+    ends = {id(b): b.points() for b in pushed}
+    for p in pushers:
+        x = p.points()
+        speed = float(np.abs(p.velocities()).max(initial=0.0))
+        grow = speed * frame_dt + g * frame_dt**2 + getattr(p, "contact_margin", 0.0)
+        lo, hi = x.min(axis=0) - grow, x.max(axis=0) + grow
+        surfaces = []
+        for b in pushed:
+            both = np.concatenate([start[id(b)], ends[id(b)]])
+            if np.all(both.max(axis=0) >= lo) and np.all(both.min(axis=0) <= hi):
+                mu = max(DEFAULT_FRICTION if getattr(q, "friction", None) is None else q.friction for q in (p, b))
+                surfaces.append((id(b), start[id(b)], ends[id(b)], b.faces, mu))
+        p.set_moving_surfaces(surfaces)

@@ -238,6 +238,8 @@ class BemBody(Body):
         self._next_handle = 0
         self._surfaces: Surfaces | None = None
         self._response: PointResponse | None = None
+        self._coupling_until: float | None = None  # add_vertex_impulses: forces on until then [s]
+        self.coupling_impulse = np.zeros(3)  # momentum handed over by add_vertex_impulses so far [N s] (world)
         self.constraint_history: list[wc.SolveRecord] = []  # diagnostics of every constrained step (not state)
         self.unconverged_steps = 0
 
@@ -337,6 +339,31 @@ class BemBody(Body):
         if not callable(fn):
             raise InvalidParameter(f"body '{self.name}': add_traction takes a callable fn(t) -> (V, 3) tractions")
         self._loads.append(fn)
+
+    def add_vertex_impulses(self, impulses: np.ndarray, duration: float) -> None:
+        """Deliver momentum ``impulses`` [N s] (V, 3) per mesh vertex (world axes) as constant point
+        forces impulses / duration over the next ``duration`` seconds (the steps ending within it),
+        replacing what is left of an earlier call. The World hands a body this way what bodies of
+        other methods pushed it with over the last frame (explicit two-way coupling, issue 18)."""
+        self._require_bound()
+        J = np.asarray(impulses, dtype=np.float64)
+        V = len(self._node_count)
+        if J.shape != (V, 3) or not np.all(np.isfinite(J)):
+            raise InvalidParameter(f"body '{self.name}': vertex impulses must be finite, shape ({V}, 3); got {J.shape}")
+        if not (duration > 0.0):
+            raise InvalidParameter(f"body '{self.name}': impulse duration must be > 0 s, got {duration}")
+        if self._coupling_until is None:  # first use: one more load, only for bodies that are pushed
+            self._vertex_area = np.bincount(self._surface.vertex, weights=self._surface.node_areas(), minlength=V)
+            self._loads.append(self._coupling_tractions)
+        self._coupling_force = J / duration
+        self._coupling_until = self.steps * self.dt + duration
+        self.coupling_impulse = self.coupling_impulse + J.sum(axis=0)
+
+    def _coupling_tractions(self, t: float) -> np.ndarray:
+        """The forces of ``add_vertex_impulses`` as tractions in frame axes, per vertex."""
+        if t > self._coupling_until + 1e-9 * self.dt:
+            return np.zeros_like(self._coupling_force)
+        return (self._coupling_force @ self.state.frame.R) / self._vertex_area[:, None]
 
     def _tractions(self, t: float) -> np.ndarray:
         n = self._surface.n_nodes

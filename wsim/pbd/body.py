@@ -74,6 +74,25 @@ class _DeviceMeshCollider:
     max_dist: float
 
 
+@dataclass
+class _MovingSurface:
+    """Another body's surface that moves on its own over the frame (explicit two-way coupling):
+    its vertices at the frame's start and end, where they are at the current substep's start and
+    end, its mesh (on ``cur``, refit each substep) and the momentum the particles gave it."""
+
+    key: int
+    p0: wp.array
+    p1: wp.array
+    prev: wp.array
+    cur: wp.array
+    faces: wp.array
+    indices: wp.array
+    mesh: wp.Mesh
+    friction: float
+    reach: float
+    impulse: wp.array
+
+
 class PbdBody(Body):
     """A soft body simulated with XPBD.
 
@@ -452,6 +471,7 @@ class PbdBody(Body):
         self._layout: tuple[int, float] | None = None
         self._graph = None
         self._contact_mesh: wp.Mesh | None = None  # its surface, for contact with other bodies (wsim.pbd.contact)
+        self._moving: list[_MovingSurface] = []  # other methods' bodies in reach this frame
 
     def attach_colliders(self, surfaces: Surfaces) -> None:
         self._surfaces = surfaces
@@ -588,8 +608,13 @@ class PbdBody(Body):
             inputs=[self.x, self.v, self.x_prev, self.x_pred, self.dx, self.inv_mass, self._handle_slot,
                     self._handle_targets_d, (s - 1) * k, self._gravity, self.drag, h],
         )
-        if self._planes or self._mesh_colliders or self._contact_mesh is not None:
+        if self._planes or self._mesh_colliders or self._contact_mesh is not None or self._moving:
             self.dxc.zero_()  # contact corrections of this substep (colliders and other bodies)
+        S = self._layout[0]
+        for ms in self._moving:
+            wp.launch(kc.lerp_points, dim=ms.cur.shape[0], inputs=[ms.p0, ms.p1, float(s - 1) / S, ms.prev])
+            wp.launch(kc.lerp_points, dim=ms.cur.shape[0], inputs=[ms.p0, ms.p1, float(s) / S, ms.cur])
+            ms.mesh.refit()
         if self.conserve_angular_momentum:
             self._moments.zero_()
             self._launch_moments(0, self._moment_blocks())
@@ -641,6 +666,49 @@ class PbdBody(Body):
                 dim=n,
                 inputs=[self.dx, self.dxc, self.x_prev, self.x_pred, self.inv_mass, dc.mesh.id, dc.transforms, dc.inverses, s, self.contact_margin, dc.max_dist, dc.friction],
             )
+        for ms in self._moving:
+            wp.launch(
+                kc.moving_surface_contact,
+                dim=m.n_surface,
+                inputs=[self.x_pred, self.dx, self.dxc, self.x_prev, self.inv_mass, ms.mesh.id, ms.faces, ms.prev,
+                        self.contact_margin, ms.reach, ms.friction, 1.0 / h, ms.impulse],
+            )
+
+    def set_moving_surfaces(self, surfaces: Sequence[tuple[int, np.ndarray, np.ndarray, np.ndarray, float]]) -> None:
+        """Surfaces of other bodies that move on their own over the coming frame and may touch this
+        one: (key, vertices at the frame start (V, 3), at its end (V, 3), faces (M, 3), friction).
+        Over the frame they move linearly between the two; this body's surface particles are kept
+        out of them like out of a moving collider, and the momentum that takes is collected per
+        vertex (``moving_surface_impulses``) for the World to hand to their bodies. Called by the
+        World before each ``advance``; an empty list ends the coupling."""
+        self._require_bound()
+        d = self._device
+        layout = [(k, len(p0), len(f)) for k, p0, _, f, _ in surfaces]
+        if layout != [(ms.key, ms.p0.shape[0], ms.faces.shape[0]) for ms in self._moving]:
+            self._graph = None  # the frame's launches change
+            self._moving = []
+            for key, p0, _, faces, mu in surfaces:
+                f32 = np.ascontiguousarray(faces, dtype=np.int32)
+                cur = wp.array(np.asarray(p0, dtype=np.float32), dtype=wp.vec3, device=d)
+                indices = wp.array(f32.ravel(), dtype=wp.int32, device=d)
+                self._moving.append(_MovingSurface(
+                    key=key, p0=wp.zeros(len(p0), dtype=wp.vec3, device=d), p1=wp.zeros(len(p0), dtype=wp.vec3, device=d),
+                    prev=wp.zeros(len(p0), dtype=wp.vec3, device=d), cur=cur,
+                    faces=wp.array(f32, dtype=wp.vec3i, device=d), indices=indices,
+                    mesh=wp.Mesh(points=cur, indices=indices), friction=float(mu), reach=0.0,
+                    impulse=wp.zeros(len(p0), dtype=wp.vec3d, device=d)))
+                # how far from the surface a query looks (a particle deep inside is still found);
+                # fixed with the launches, which a CUDA graph records
+                self._moving[-1].reach = 2.0 * float(np.linalg.norm(np.ptp(p0, axis=0))) + self.contact_margin
+        for ms, (_, p0, p1, _, _) in zip(self._moving, surfaces):
+            ms.p0.assign(np.asarray(p0, dtype=np.float32))
+            ms.p1.assign(np.asarray(p1, dtype=np.float32))
+            ms.impulse.zero_()
+
+    def moving_surface_impulses(self) -> dict[int, np.ndarray]:
+        """Momentum [N s] (V, 3) per vertex that each moving surface received from this body over
+        the last frame (world axes), by key."""
+        return {ms.key: ms.impulse.numpy() for ms in self._moving}
 
     def _substep_end(self, h: float) -> None:
         """Velocities from the positions; the angular momentum restored net of contact."""

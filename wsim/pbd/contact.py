@@ -121,7 +121,8 @@ def advance_together(bodies: Sequence[PbdBody], t0: float, t1: float, graphs: di
     h = frame_dt / substeps
     device = group[0]._device
     mus = [_friction(a, b) for a, b in pairs]
-    key = (tuple(id(b) for b in group), tuple((id(a), id(b)) for a, b in pairs), substeps, h)
+    key = (tuple(id(b) for b in group), tuple((id(a), id(b)) for a, b in pairs), substeps, h,
+           tuple((ms.key, ms.mesh.id) for b in group for ms in b._moving))  # other methods' surfaces too
     use_graph = graphs is not None and device.is_cuda and all(b.use_graph for b in group)
     with wp.ScopedDevice(device):
         for b in group:
