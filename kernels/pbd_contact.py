@@ -148,6 +148,23 @@ def surface_positions(x_pred: wp.array(dtype=wp.vec3), dx: wp.array(dtype=wp.vec
     out[i] = x_pred[i] + dx[i]
 
 
+@wp.func
+def surface_contact(mesh: wp.uint64, p: wp.vec3, max_dist: float, margin: float):
+    """Nearest point s of a closed, outward surface mesh to p: (depth = margin - signed distance,
+    s, the outward normal n there, the face, the barycentric weights of s on it). depth <= 0: no
+    contact (also when nothing is within ``max_dist``)."""
+    q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
+    if not q.result:
+        return -1.0, p, wp.vec3(0.0), int(0), wp.vec3(0.0)
+    s = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+    d = p - s
+    dist = wp.length(d)
+    n = wp.mesh_eval_face_normal(mesh, q.face)
+    if dist > 1.0e-9:
+        n = d / dist * wp.sign(q.sign)
+    return margin - dist * wp.sign(q.sign), s, n, q.face, wp.vec3(q.u, q.v, 1.0 - q.u - q.v)
+
+
 @wp.kernel
 def body_contact(
     x_pred: wp.array(dtype=wp.vec3),
@@ -178,20 +195,10 @@ def body_contact(
     i = wp.tid()
     w_p = inv_mass[i]
     p = x_pred[i] + dx[i]
-    q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
-    if not q.result:
-        return
-    s = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
-    d = p - s
-    dist = wp.length(d)
-    n = wp.mesh_eval_face_normal(mesh, q.face)
-    if dist > 1.0e-9:
-        n = d / dist * wp.sign(q.sign)
-    depth = margin - dist * wp.sign(q.sign)
+    depth, s, n, face, b = surface_contact(mesh, p, max_dist, margin)
     if depth <= 0.0:
         return
-    tri = faces[q.face]
-    b = wp.vec3(q.u, q.v, 1.0 - q.u - q.v)
+    tri = faces[face]
     w = w_p
     for k in range(3):
         w += b[k] * b[k] * inv_mass_b[tri[k]]
@@ -243,20 +250,10 @@ def moving_surface_contact(
     if w_p == 0.0:
         return
     p = x_pred[i] + dx[i]
-    q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
-    if not q.result:
-        return
-    s = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
-    d = p - s
-    dist = wp.length(d)
-    n = wp.mesh_eval_face_normal(mesh, q.face)
-    if dist > 1.0e-9:
-        n = d / dist * wp.sign(q.sign)
-    depth = margin - dist * wp.sign(q.sign)
+    depth, s, n, face, b = surface_contact(mesh, p, max_dist, margin)
     if depth <= 0.0:
         return
-    tri = faces[q.face]
-    b = wp.vec3(q.u, q.v, 1.0 - q.u - q.v)
+    tri = faces[face]
     s_prev = b[0] * v_prev[tri[0]] + b[1] * v_prev[tri[1]] + b[2] * v_prev[tri[2]]
     rel = (p + n * depth - x_prev[i]) - (s - s_prev)
     c = n * depth + friction_correction(rel, n, depth, mu)
