@@ -83,6 +83,23 @@ def ground_contact(
     dxc[i] = dxc[i] + c
 
 
+@wp.func
+def surface_contact(mesh: wp.uint64, p: wp.vec3, max_dist: float, margin: float):
+    """Nearest point s of a closed, outward surface mesh to p: (depth = margin - signed distance,
+    s, the outward normal n there, the face, the barycentric weights of s on it). depth <= 0: no
+    contact (also when nothing is within ``max_dist``)."""
+    q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
+    if not q.result:
+        return -1.0, p, wp.vec3(0.0), int(0), wp.vec3(0.0)
+    s = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+    d = p - s
+    dist = wp.length(d)
+    n = wp.mesh_eval_face_normal(mesh, q.face)
+    if dist > 1.0e-9:
+        n = d / dist * wp.sign(q.sign)
+    return margin - dist * wp.sign(q.sign), s, n, q.face, wp.vec3(q.u, q.v, 1.0 - q.u - q.v)
+
+
 @wp.kernel
 def mesh_contact(
     dx: wp.array(dtype=wp.vec3),
@@ -113,17 +130,7 @@ def mesh_contact(
     Minv = inverses[step]
     p_world = x_pred[i] + dx[i]
     p = wp.transform_point(Minv, p_world)
-    q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
-    if not q.result:
-        return
-    s = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
-    d = p - s
-    dist = wp.length(d)
-    n = wp.mesh_eval_face_normal(mesh, q.face)
-    if dist > 1.0e-9:
-        n = d / dist * wp.sign(q.sign)
-    signed = dist * wp.sign(q.sign)
-    depth = margin - signed
+    depth, s, n, face, bary = surface_contact(mesh, p, max_dist, margin)
     if depth <= 0.0:
         return
     target = wp.transform_point(M, s + n * margin)
@@ -146,23 +153,6 @@ def surface_positions(x_pred: wp.array(dtype=wp.vec3), dx: wp.array(dtype=wp.vec
     of a body's contact mesh, refit after this."""
     i = wp.tid()
     out[i] = x_pred[i] + dx[i]
-
-
-@wp.func
-def surface_contact(mesh: wp.uint64, p: wp.vec3, max_dist: float, margin: float):
-    """Nearest point s of a closed, outward surface mesh to p: (depth = margin - signed distance,
-    s, the outward normal n there, the face, the barycentric weights of s on it). depth <= 0: no
-    contact (also when nothing is within ``max_dist``)."""
-    q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
-    if not q.result:
-        return -1.0, p, wp.vec3(0.0), int(0), wp.vec3(0.0)
-    s = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
-    d = p - s
-    dist = wp.length(d)
-    n = wp.mesh_eval_face_normal(mesh, q.face)
-    if dist > 1.0e-9:
-        n = d / dist * wp.sign(q.sign)
-    return margin - dist * wp.sign(q.sign), s, n, q.face, wp.vec3(q.u, q.v, 1.0 - q.u - q.v)
 
 
 @wp.kernel
