@@ -253,3 +253,29 @@ def test_pbd_ball_rests_on_a_bem_cube_on_the_ground(box_ops):
     assert np.abs(ball.velocities()).max() < 0.1
     weight = float(ball.masses.sum()) * G * w.time
     assert cube.coupling_impulse[1] == pytest.approx(-weight, rel=0.01)
+
+
+def test_pbd_ball_and_eol_box_collide():
+    """A PBD ball and an EoL box thrown at each other in zero gravity: the same explicit coupling
+    as against a BEM body (the EoL body takes the impulses as tractions, ``add_vertex_impulses``).
+    The ball's momentum changes by exactly minus what the box is handed; the box's by that to
+    0.5 % (measured 0.09 %: EoL advection is not exactly conservative); the ball rebounds and no
+    particle goes 5 mm into the box."""
+    w = wsim.World(fps=60, gravity=(0.0, 0.0, 0.0), device="cpu")
+    box = trimesh.creation.box(extents=(0.3, 0.3, 0.3)).subdivide().subdivide()
+    eol = w.add(wsim.EolBody(box, wsim.ElasticMaterial(E=1e5, nu=0.3, rho=500.0), resolution=6, name="box",
+                             position=(0.25, 0.03, 0.0), velocity=(-1.0, 0.0, 0.0), damping=50.0))
+    ball = w.add(wsim.PbdBody(SMALL_BALL, PBD_DENSE, tets="auto", name="ball", position=(-0.2, 0.0, 0.0),
+                              velocity=(1.0, 0.0, 0.0)))
+    pe, pb = eol.linear_momentum(), ball.linear_momentum()
+    depth = 0.0
+    for _ in range(30):
+        w.step()
+        depth = max(depth, _depth(eol, ball))
+    J = eol.coupling_impulse
+    assert J[0] > 5.0
+    np.testing.assert_allclose(ball.linear_momentum() - pb, -J, atol=1e-5 * np.linalg.norm(J))
+    np.testing.assert_allclose(eol.load_impulse, J, rtol=1e-9, atol=1e-12)
+    assert np.linalg.norm(eol.linear_momentum() - pe - J) < 0.005 * np.linalg.norm(J)
+    assert ball.linear_momentum()[0] < 0.0
+    assert depth < 0.005

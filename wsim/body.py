@@ -145,3 +145,15 @@ class Body(ABC):
         t1 = time.perf_counter()
         self.timings[stage] = self.timings.get(stage, 0.0) + t1 - t0
         return t1
+
+
+def vertex_impulse_forces(name: str, impulses: Any, duration: float, n_vertices: int) -> np.ndarray:
+    """The (V, 3) point forces impulses / duration [N] of ``add_vertex_impulses`` (BEM and EoL
+    bodies: what a body of another method pushed them with over the last frame, delivered over the
+    next), checked: finite, one row per vertex, duration > 0."""
+    J = np.asarray(impulses, dtype=np.float64)
+    if J.shape != (n_vertices, 3) or not np.all(np.isfinite(J)):
+        raise InvalidParameter(f"body '{name}': vertex impulses must be finite, shape ({n_vertices}, 3); got {J.shape}")
+    if not (duration > 0.0):
+        raise InvalidParameter(f"body '{name}': impulse duration must be > 0 s, got {duration}")
+    return J / duration

@@ -37,7 +37,7 @@ from wsim.rigid import RigidFrame, rotation_vector
 from wsim.bem.mass import mass_properties
 from wsim.bem.operators import PRECISIONS, BemOperators, build_operators
 from wsim.bem.surface import prepare_surface
-from wsim.body import Body
+from wsim.body import Body, vertex_impulse_forces
 from wsim.cache import OperatorCache
 from wsim.colliders import Surfaces
 from wsim.errors import InvalidParameter, SimulationDiverged
@@ -346,18 +346,14 @@ class BemBody(Body):
         replacing what is left of an earlier call. The World hands a body this way what bodies of
         other methods pushed it with over the last frame (explicit two-way coupling, issue 18)."""
         self._require_bound()
-        J = np.asarray(impulses, dtype=np.float64)
         V = len(self._node_count)
-        if J.shape != (V, 3) or not np.all(np.isfinite(J)):
-            raise InvalidParameter(f"body '{self.name}': vertex impulses must be finite, shape ({V}, 3); got {J.shape}")
-        if not (duration > 0.0):
-            raise InvalidParameter(f"body '{self.name}': impulse duration must be > 0 s, got {duration}")
+        force = vertex_impulse_forces(self.name, impulses, duration, V)
         if self._coupling_until is None:  # first use: one more load, only for bodies that are pushed
             self._vertex_area = np.bincount(self._surface.vertex, weights=self._surface.node_areas(), minlength=V)
             self._loads.append(self._coupling_tractions)
-        self._coupling_force = J / duration
+        self._coupling_force = force
         self._coupling_until = self.steps * self.dt + duration
-        self.coupling_impulse = self.coupling_impulse + J.sum(axis=0)
+        self.coupling_impulse = self.coupling_impulse + duration * force.sum(axis=0)
 
     def _coupling_tractions(self, t: float) -> np.ndarray:
         """The forces of ``add_vertex_impulses`` as tractions in frame axes, per vertex."""

@@ -39,7 +39,7 @@ import trimesh
 import warp as wp
 
 from wsim import mesh as wmesh
-from wsim.body import Body
+from wsim.body import Body, vertex_impulse_forces
 from wsim.colliders import Surfaces
 from wsim.eol.advection import advect_arrays, check_scheme
 from wsim.eol.contact import ContactRows, ContactSystem, block_nodes, rows_from_blocks, solve_contact, surface_samples
@@ -281,6 +281,8 @@ class EolBody(Body):
         if self.damping > 0.0:  # explicit viscosity: diffusion number eta dt / (rho h^2) <= 1/12
             self.dt_elastic = min(self.dt_elastic, material.rho * self.grid.h**2 / (12.0 * self.damping))
         self._mass_floor = floor * material.rho * self.grid.h**3
+        self._coupling_until: float | None = None  # add_vertex_impulses: forces on until then [s]
+        self.coupling_impulse = np.zeros(3)  # momentum handed over by add_vertex_impulses so far [N s] (world)
         self.timings = {k: 0.0 for k in STAGES}
         self.history: list[StepRecord] = []  # diagnostics of every step (not state)
         self.state: EolState | None = None
@@ -470,6 +472,25 @@ class EolBody(Body):
             raise InvalidParameter(f"body '{self.name}': add_body_force takes a callable fn(t) -> (3,) acceleration "
                                    f"[m/s^2], got {type(fn).__name__}")
         (self._point_forces if per_point else self._accelerations).append(fn)
+
+    def add_vertex_impulses(self, impulses: np.ndarray, duration: float) -> None:
+        """Deliver momentum ``impulses`` [N s] (V, 3) per surface vertex (world axes) as constant
+        point forces impulses / duration over the next ``duration`` seconds, replacing what is
+        left of an earlier call: a traction (``add_traction``) of force / current vertex area, so
+        the force and its momentum are exact. The World hands a body this way what bodies of other
+        methods pushed it with over the last frame (explicit two-way coupling, issue 18)."""
+        self._require_bound()
+        force = vertex_impulse_forces(self.name, impulses, duration, self._n_surface)
+        if self._coupling_until is None:  # first use: one more load, only for bodies that are pushed
+            self._tractions.append(self._coupling_tractions)
+        self._coupling_force = force
+        self._coupling_until = self.state.time + duration
+        self.coupling_impulse = self.coupling_impulse + duration * force.sum(axis=0)
+
+    def _coupling_tractions(self, t: float) -> np.ndarray:
+        if t >= self._coupling_until - 1e-9 * max(self.dt_elastic, 1e-12):
+            return np.zeros_like(self._coupling_force)
+        return self._coupling_force / self.vertex_areas()[:, None]
 
     @property
     def load_impulse(self) -> np.ndarray:
