@@ -42,10 +42,11 @@ def test_eol_scenes_run_and_write_usd(tmp_path, scene):
     assert np.all(np.isfinite(p2)) and np.abs(p2 - p0).max() > 0.0  # it moved
 
 
-@pytest.mark.parametrize("scene", ["bem_cube_drop", "bem_glued_cubes", "bem_friction", "bem_pile"])
+@pytest.mark.parametrize("scene", ["bem_cube_drop", "bem_glued_cubes", "bem_friction", "bem_pile", "mixed_drop"])
 def test_bem_constraint_scenes_run_and_write_usd(tmp_path, scene):
-    """The BEM contact and joint scenes end to end with their procedural bodies (small enough for a
-    CPU operator build): every body written for every frame, lying on the ground after landing."""
+    """The BEM contact and joint scenes, and the three methods together, end to end with their
+    procedural bodies (small enough for a CPU operator build): every body written for every frame,
+    none below the ground."""
     out = tmp_path / f"{scene}.usda"
     res = run_cli("run", f"scenes/{scene}.py", "-o", str(out), "--frames", "2", "--device", "cpu", "--no-progress")
     assert res.returncode == 0, res.stderr
