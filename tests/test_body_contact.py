@@ -279,3 +279,28 @@ def test_pbd_ball_and_eol_box_collide():
     assert np.linalg.norm(eol.linear_momentum() - pe - J) < 0.005 * np.linalg.norm(J)
     assert ball.linear_momentum()[0] < 0.0
     assert depth < 0.005
+
+
+def test_coupling_interval_is_chosen_and_checked(box_ops):
+    """``World(coupling_dt=None)`` couples PBD and BEM bodies at the shortest interval that holds a
+    whole number of BEM steps and at least one PBD substep (here 5 BEM steps a frame, 10 PBD
+    substeps: 5 intervals); a PBD-only World keeps the frame. An interval that does not divide the
+    frame, or that a BEM body's dt does not divide, is refused by name."""
+    def world(**kw):
+        w = wsim.World(fps=1.0 / (5 * DT), gravity=(0.0, 0.0, 0.0), device="cpu", **kw)
+        w.add(wsim.PbdBody(SMALL_BALL, PBD_DENSE, tets="auto", name="ball", position=(-0.15, 0.0, 0.0)))
+        return w
+
+    w = world()
+    w.add(wsim.BemBody(BOX, MAT, DT, operators=box_ops, name="cube", position=(0.2, 0.0, 0.0)))
+    w.step()
+    assert w.coupling_steps == 5
+    w = world()
+    w.step()
+    assert w.coupling_steps == 1
+    with pytest.raises(wsim.InvalidParameter, match="coupling_dt"):
+        world(coupling_dt=3 * DT)
+    w = world(coupling_dt=2.5 * DT)  # divides the frame (2 intervals), not the cube's dt
+    w.add(wsim.BemBody(BOX, MAT, DT, operators=box_ops, name="cube", position=(0.2, 0.0, 0.0)))
+    with pytest.raises(wsim.InvalidParameter, match="body 'cube'.*coupling interval"):
+        w.step()

@@ -58,6 +58,7 @@ class Body(ABC):
         self.timings: dict[str, float] = {}  # seconds per stage of the method's step (``_tick``)
         self.profile = False  # synchronize the device at each ``_tick`` so GPU time lands in its stage
         self._device: wp.Device | None = None  # set by bind
+        self.frame_dt: float | None = None  # the World's frame length [s], set at its first step
 
     @property
     def bound(self) -> bool:

@@ -407,9 +407,13 @@ class PbdBody(Body):
                 "iterations": self.iterations, "material": self.material.as_key()}
 
     def substeps_for(self, frame_dt: float) -> int:
-        """Substeps this body takes to cover one frame of ``frame_dt`` seconds."""
+        """Substeps this body takes to cover ``frame_dt`` seconds: a frame, or a World coupling
+        interval (``World(coupling_dt=...)``), which gets its share of the frame's substeps."""
         if self.dt is not None:
             return max(1, math.ceil(frame_dt / self.dt - 1e-9))
+        full = getattr(self, "frame_dt", None)
+        if full and frame_dt < full * (1.0 - 1e-9):
+            return max(1, int(round(self.substeps * frame_dt / full)))
         return int(self.substeps)  # type: ignore[arg-type]
 
     def bind(self, device: wp.Device, gravity: np.ndarray, up: np.ndarray) -> None:
