@@ -13,7 +13,6 @@ explicit coupling (each pushes the other, one frame late, momentum exact:
 
 from __future__ import annotations
 
-import numpy as np
 import trimesh
 
 import wsim

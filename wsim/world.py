@@ -219,6 +219,10 @@ class World:
         self._bind()
         self.surfaces.new_frame()
         k = self.coupling_steps
+        if k > 1:  # bodies that take no part in contact step the whole frame at once
+            for body in self.bodies:
+                if not _couples(body):
+                    body.advance(self.frame / self.fps, (self.frame + 1) / self.fps)
         for i in range(k):  # coupling intervals of the frame
             self._advance_interval((self.frame * k + i) / (self.fps * k), (self.frame * k + i + 1) / (self.fps * k))
         self.frame += 1
@@ -231,7 +235,7 @@ class World:
         # bodies that others are coupled to explicitly go first (BEM), then the rest (PBD)
         late = {id(b) for b in pushers}
         for body in self.bodies:
-            if id(body) not in grouped and id(body) not in late:
+            if id(body) not in grouped and id(body) not in late and (self.coupling_steps == 1 or _couples(body)):
                 body.advance(t0, t1)
         for bodies, joints in self._groups:
             _advance_group(bodies, joints, t1, self.device, self.body_contact)
@@ -404,3 +408,8 @@ def _automatic_coupling_steps(bodies: Sequence[Body], frame_dt: float) -> int:
                 return 1  # a BEM body whose dt does not divide the frame: couple at the frame
             steps.append(int(round(n)))
     return max(k for k in range(1, limit + 1) if all(n % k == 0 for n in steps))
+
+
+def _couples(body: Body) -> bool:
+    """Whether a body exchanges contact with other bodies (steps by coupling interval)."""
+    return any(hasattr(body, a) for a in ("set_moving_surfaces", "add_vertex_impulses", "constraint_begin"))
