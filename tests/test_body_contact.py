@@ -304,3 +304,33 @@ def test_coupling_interval_is_chosen_and_checked(box_ops):
     w.add(wsim.BemBody(BOX, MAT, DT, operators=box_ops, name="cube", position=(0.2, 0.0, 0.0)))
     with pytest.raises(wsim.InvalidParameter, match="body 'cube'.*coupling interval"):
         w.step()
+
+
+def test_checkpoint_in_mid_contact_keeps_the_pending_push(box_ops, tmp_path):
+    """A World saved while the PBD ball is pushing the BEM cube (a push still to deliver over the
+    next interval) and restored into a fresh World continues bit for bit on the CPU."""
+    def world():
+        w = wsim.World(fps=1.0 / (5 * DT), gravity=(0.0, 0.0, 0.0), device="cpu")
+        w.add(wsim.BemBody(BOX, MAT, DT, operators=box_ops, name="cube", position=(0.2, 0.03, 0.0),
+                           velocity=(-1.0, 0.0, 0.0)))
+        w.add(wsim.PbdBody(SMALL_BALL, PBD_DENSE, tets="auto", name="ball", position=(-0.15, 0.0, 0.0),
+                           velocity=(1.0, 0.0, 0.0)))
+        return w
+
+    n = 9  # the bodies touch from frame 8 on
+    straight = world()
+    for _ in range(2 * n):
+        straight.step()
+    first = world()
+    for _ in range(n):
+        first.step()
+    cube = first.bodies[0]
+    assert cube.state.coupling_until > first.time and np.abs(cube.state.coupling_force).max() > 0.0
+    path = first.checkpoint(tmp_path / "mid.h5")
+    resumed = world()
+    resumed.restore(path)
+    for _ in range(n):
+        resumed.step()
+    for a, b in zip(straight.bodies, resumed.bodies):
+        assert np.array_equal(a.points(), b.points()), a.name
+    assert np.array_equal(straight.bodies[0].coupling_impulse, resumed.bodies[0].coupling_impulse)

@@ -72,7 +72,7 @@ class BemState:
         frame_is_material: the last step left the frame's velocities as the material's.
     """
 
-    _ragged: ClassVar[tuple[str, ...]] = ("point_nodes", "point_kinds", "point_forces")
+    _ragged: ClassVar[tuple[str, ...]] = ("point_nodes", "point_kinds", "point_forces", "coupling_force")
 
     U: wp.array
     P: wp.array
@@ -91,6 +91,9 @@ class BemState:
     point_nodes: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     point_kinds: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     point_forces: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    coupling_force: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    coupling_until: float = -1.0
+    coupling_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
     material_velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
     material_omega: np.ndarray = field(default_factory=lambda: np.zeros(3))
     frame_is_material: bool = True
@@ -238,8 +241,7 @@ class BemBody(Body):
         self._next_handle = 0
         self._surfaces: Surfaces | None = None
         self._response: PointResponse | None = None
-        self._coupling_until: float | None = None  # add_vertex_impulses: forces on until then [s]
-        self.coupling_impulse = np.zeros(3)  # momentum handed over by add_vertex_impulses so far [N s] (world)
+        self._coupling_load = False  # whether add_vertex_impulses' load is registered
         self.constraint_history: list[wc.SolveRecord] = []  # diagnostics of every constrained step (not state)
         self.unconverged_steps = 0
 
@@ -348,18 +350,31 @@ class BemBody(Body):
         self._require_bound()
         V = len(self._node_count)
         force = vertex_impulse_forces(self.name, impulses, duration, V)
-        if self._coupling_until is None:  # first use: one more load, only for bodies that are pushed
+        st = self.state
+        st.coupling_force = force
+        st.coupling_until = self.steps * self.dt + duration
+        st.coupling_impulse = st.coupling_impulse + duration * force.sum(axis=0)
+        self._register_coupling()
+
+    def _register_coupling(self) -> None:
+        """The load of ``add_vertex_impulses``: one more traction, only for bodies that are pushed."""
+        if not self._coupling_load:
+            V = len(self._node_count)
             self._vertex_area = np.bincount(self._surface.vertex, weights=self._surface.node_areas(), minlength=V)
             self._loads.append(self._coupling_tractions)
-        self._coupling_force = force
-        self._coupling_until = self.steps * self.dt + duration
-        self.coupling_impulse = self.coupling_impulse + duration * force.sum(axis=0)
+            self._coupling_load = True
+
+    @property
+    def coupling_impulse(self) -> np.ndarray:
+        """Momentum handed to the body by ``add_vertex_impulses`` so far [N s] (world)."""
+        return np.zeros(3) if self.state is None else self.state.coupling_impulse
 
     def _coupling_tractions(self, t: float) -> np.ndarray:
         """The forces of ``add_vertex_impulses`` as tractions in frame axes, per vertex."""
-        if t > self._coupling_until + 1e-9 * self.dt:
-            return np.zeros_like(self._coupling_force)
-        return (self._coupling_force @ self.state.frame.R) / self._vertex_area[:, None]
+        st = self.state
+        if t > st.coupling_until + 1e-9 * self.dt or not len(st.coupling_force):
+            return np.zeros((len(self._node_count), 3))
+        return (st.coupling_force @ st.frame.R) / self._vertex_area[:, None]
 
     def _tractions(self, t: float) -> np.ndarray:
         n = self._surface.n_nodes
@@ -419,6 +434,8 @@ class BemBody(Body):
         self._window_length = max(ops.n_max, 20)  # steps per window of the growth check
 
     def _state_loaded(self) -> None:
+        if self.state.coupling_until >= 0.0:  # a restored push still to deliver
+            self._register_coupling()
         # the traction buffer is scratch: cleared, so an unloaded next step needs nothing from it
         self._p.zero_()
         self._p_live = False

@@ -281,8 +281,7 @@ class EolBody(Body):
         if self.damping > 0.0:  # explicit viscosity: diffusion number eta dt / (rho h^2) <= 1/12
             self.dt_elastic = min(self.dt_elastic, material.rho * self.grid.h**2 / (12.0 * self.damping))
         self._mass_floor = floor * material.rho * self.grid.h**3
-        self._coupling_until: float | None = None  # add_vertex_impulses: forces on until then [s]
-        self.coupling_impulse = np.zeros(3)  # momentum handed over by add_vertex_impulses so far [N s] (world)
+        self._coupling_load = False  # whether add_vertex_impulses' load is registered
         self.timings = {k: 0.0 for k in STAGES}
         self.history: list[StepRecord] = []  # diagnostics of every step (not state)
         self.state: EolState | None = None
@@ -359,6 +358,8 @@ class EolBody(Body):
 
     def _state_loaded(self) -> None:
         """Forces, lumped masses and elastic energy of the loaded state (what the last step's force pass left)."""
+        if self.state.coupling_until >= 0.0:  # a restored push still to deliver
+            self._register_coupling()
         self._force_pass()
 
     def intermediate_vertices(self) -> np.ndarray:
@@ -481,16 +482,28 @@ class EolBody(Body):
         methods pushed it with over the last frame (explicit two-way coupling, issue 18)."""
         self._require_bound()
         force = vertex_impulse_forces(self.name, impulses, duration, self._n_surface)
-        if self._coupling_until is None:  # first use: one more load, only for bodies that are pushed
+        st = self.state
+        st.coupling_force = force
+        st.coupling_until = st.time + duration
+        st.coupling_impulse = st.coupling_impulse + duration * force.sum(axis=0)
+        self._register_coupling()
+
+    def _register_coupling(self) -> None:
+        """The load of ``add_vertex_impulses``: one more traction, only for bodies that are pushed."""
+        if not self._coupling_load:
             self._tractions.append(self._coupling_tractions)
-        self._coupling_force = force
-        self._coupling_until = self.state.time + duration
-        self.coupling_impulse = self.coupling_impulse + duration * force.sum(axis=0)
+            self._coupling_load = True
+
+    @property
+    def coupling_impulse(self) -> np.ndarray:
+        """Momentum handed to the body by ``add_vertex_impulses`` so far [N s] (world)."""
+        return np.zeros(3) if self.state is None else self.state.coupling_impulse
 
     def _coupling_tractions(self, t: float) -> np.ndarray:
-        if t >= self._coupling_until - 1e-9 * max(self.dt_elastic, 1e-12):
-            return np.zeros_like(self._coupling_force)
-        return self._coupling_force / self.vertex_areas()[:, None]
+        st = self.state
+        if t >= st.coupling_until - 1e-9 * max(self.dt_elastic, 1e-12) or not len(st.coupling_force):
+            return np.zeros((self._n_surface, 3))
+        return st.coupling_force / self.vertex_areas()[:, None]
 
     @property
     def load_impulse(self) -> np.ndarray:

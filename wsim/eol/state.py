@@ -35,12 +35,15 @@ class EolState:
         active_rows: ids of the contact rows active in the last QP (its warm start; variable length).
         contact_impulse, gravity_impulse, load_impulse: (3,) momentum delivered by contact, by gravity and
             by the loads (``add_traction``, ``add_body_force``) so far [kg m/s].
+        coupling_force, coupling_until, coupling_impulse: the point forces [N] (V, 3) of
+            ``add_vertex_impulses`` still being delivered, until when [s] (-1: none), and the momentum
+            handed over so far [N s].
         grid_grown: (6,) cells the grid has grown by since ``bind``, below x, y, z and above x, y, z
             (``EolBody._regrid``; z and v are sized by the grown grid).
         failure: utf-8 bytes of "quantity\\x1fdetail\\x1freason" once a step failed (empty: none).
     """
 
-    _ragged: ClassVar[tuple[str, ...]] = ("active_rows", "failure")
+    _ragged: ClassVar[tuple[str, ...]] = ("active_rows", "failure", "coupling_force")
 
     z: wp.array
     v: wp.array
@@ -60,6 +63,9 @@ class EolState:
     gravity_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
     load_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
     grid_grown: np.ndarray = field(default_factory=lambda: np.zeros(6, dtype=np.int64))
+    coupling_force: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    coupling_until: float = -1.0
+    coupling_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
     failure: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.uint8))
 
     def get_failure(self) -> tuple[str, str, str] | None:
