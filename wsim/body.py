@@ -148,13 +148,32 @@ class Body(ABC):
         return t1
 
 
-def vertex_impulse_forces(name: str, impulses: Any, duration: float, n_vertices: int) -> np.ndarray:
-    """The (V, 3) point forces impulses / duration [N] of ``add_vertex_impulses`` (BEM and EoL
-    bodies: what a body of another method pushed them with over the last frame, delivered over the
-    next), checked: finite, one row per vertex, duration > 0."""
-    J = np.asarray(impulses, dtype=np.float64)
-    if J.shape != (n_vertices, 3) or not np.all(np.isfinite(J)):
-        raise InvalidParameter(f"body '{name}': vertex impulses must be finite, shape ({n_vertices}, 3); got {J.shape}")
-    if not (duration > 0.0):
-        raise InvalidParameter(f"body '{name}': impulse duration must be > 0 s, got {duration}")
-    return J / duration
+class VertexImpulses:
+    """What a body needs to be pushed by bodies of another method (BEM and EoL; issue 18):
+    ``add_vertex_impulses`` keeps the push in the state (``coupling_force`` (V, 3) [N],
+    ``coupling_until`` [s], ``coupling_impulse`` [N s]: a checkpoint carries them) and registers the
+    body's load for it once. The body defines ``_coupling_vertices`` (V), ``_coupling_time`` (its
+    time now) and ``_register_coupling``."""
+
+    def add_vertex_impulses(self, impulses: Any, duration: float) -> None:
+        """Deliver momentum ``impulses`` [N s] (V, 3) per mesh vertex (world axes) as constant point
+        forces impulses / duration over the next ``duration`` seconds, replacing what is left of an
+        earlier call. The World hands a body this way what bodies of other methods pushed it with
+        over the last coupling interval (explicit two-way coupling)."""
+        self._require_bound()
+        J = np.asarray(impulses, dtype=np.float64)
+        V = self._coupling_vertices()
+        if J.shape != (V, 3) or not np.all(np.isfinite(J)):
+            raise InvalidParameter(f"body '{self.name}': vertex impulses must be finite, shape ({V}, 3); got {J.shape}")
+        if not (duration > 0.0):
+            raise InvalidParameter(f"body '{self.name}': impulse duration must be > 0 s, got {duration}")
+        st = self.state
+        st.coupling_force = J / duration
+        st.coupling_until = self._coupling_time() + duration
+        st.coupling_impulse = st.coupling_impulse + J.sum(axis=0)
+        self._register_coupling()
+
+    @property
+    def coupling_impulse(self) -> np.ndarray:
+        """Momentum handed to the body by ``add_vertex_impulses`` so far [N s] (world)."""
+        return np.zeros(3) if self.state is None else self.state.coupling_impulse

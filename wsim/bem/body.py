@@ -37,7 +37,7 @@ from wsim.rigid import RigidFrame, rotation_vector
 from wsim.bem.mass import mass_properties
 from wsim.bem.operators import PRECISIONS, BemOperators, build_operators
 from wsim.bem.surface import prepare_surface
-from wsim.body import Body, vertex_impulse_forces
+from wsim.body import Body, VertexImpulses
 from wsim.cache import OperatorCache
 from wsim.colliders import Surfaces
 from wsim.errors import InvalidParameter, SimulationDiverged
@@ -99,7 +99,7 @@ class BemState:
     frame_is_material: bool = True
 
 
-class BemBody(Body):
+class BemBody(VertexImpulses, Body):
     """An elastic body simulated by convolution-quadrature BEM in a rigid moving frame.
 
     Args:
@@ -342,32 +342,20 @@ class BemBody(Body):
             raise InvalidParameter(f"body '{self.name}': add_traction takes a callable fn(t) -> (V, 3) tractions")
         self._loads.append(fn)
 
-    def add_vertex_impulses(self, impulses: np.ndarray, duration: float) -> None:
-        """Deliver momentum ``impulses`` [N s] (V, 3) per mesh vertex (world axes) as constant point
-        forces impulses / duration over the next ``duration`` seconds (the steps ending within it),
-        replacing what is left of an earlier call. The World hands a body this way what bodies of
-        other methods pushed it with over the last frame (explicit two-way coupling, issue 18)."""
-        self._require_bound()
-        V = len(self._node_count)
-        force = vertex_impulse_forces(self.name, impulses, duration, V)
-        st = self.state
-        st.coupling_force = force
-        st.coupling_until = self.steps * self.dt + duration
-        st.coupling_impulse = st.coupling_impulse + duration * force.sum(axis=0)
-        self._register_coupling()
+    def _coupling_vertices(self) -> int:
+        return len(self._node_count)
+
+    def _coupling_time(self) -> float:
+        return self.steps * self.dt
 
     def _register_coupling(self) -> None:
-        """The load of ``add_vertex_impulses``: one more traction, only for bodies that are pushed."""
+        """The load of ``add_vertex_impulses`` (the World's push from bodies of other methods, issue 18):
+        one more traction, only for bodies that are pushed."""
         if not self._coupling_load:
             V = len(self._node_count)
             self._vertex_area = np.bincount(self._surface.vertex, weights=self._surface.node_areas(), minlength=V)
             self._loads.append(self._coupling_tractions)
             self._coupling_load = True
-
-    @property
-    def coupling_impulse(self) -> np.ndarray:
-        """Momentum handed to the body by ``add_vertex_impulses`` so far [N s] (world)."""
-        return np.zeros(3) if self.state is None else self.state.coupling_impulse
 
     def _coupling_tractions(self, t: float) -> np.ndarray:
         """The forces of ``add_vertex_impulses`` as tractions in frame axes, per vertex."""

@@ -39,7 +39,7 @@ import trimesh
 import warp as wp
 
 from wsim import mesh as wmesh
-from wsim.body import Body, vertex_impulse_forces
+from wsim.body import Body, VertexImpulses
 from wsim.colliders import Surfaces
 from wsim.eol.advection import advect_arrays, check_scheme
 from wsim.eol.contact import ContactRows, ContactSystem, block_nodes, rows_from_blocks, solve_contact, surface_samples
@@ -104,7 +104,7 @@ class StepRecord:
     qp_iterations: int = 0
 
 
-class EolBody(Body):
+class EolBody(VertexImpulses, Body):
     """An Eulerian-on-Lagrangian solid.
 
     Args:
@@ -474,30 +474,19 @@ class EolBody(Body):
                                    f"[m/s^2], got {type(fn).__name__}")
         (self._point_forces if per_point else self._accelerations).append(fn)
 
-    def add_vertex_impulses(self, impulses: np.ndarray, duration: float) -> None:
-        """Deliver momentum ``impulses`` [N s] (V, 3) per surface vertex (world axes) as constant
-        point forces impulses / duration over the next ``duration`` seconds, replacing what is
-        left of an earlier call: a traction (``add_traction``) of force / current vertex area, so
-        the force and its momentum are exact. The World hands a body this way what bodies of other
-        methods pushed it with over the last frame (explicit two-way coupling, issue 18)."""
-        self._require_bound()
-        force = vertex_impulse_forces(self.name, impulses, duration, self._n_surface)
-        st = self.state
-        st.coupling_force = force
-        st.coupling_until = st.time + duration
-        st.coupling_impulse = st.coupling_impulse + duration * force.sum(axis=0)
-        self._register_coupling()
+    def _coupling_vertices(self) -> int:
+        return self._n_surface
+
+    def _coupling_time(self) -> float:
+        return self.state.time
 
     def _register_coupling(self) -> None:
-        """The load of ``add_vertex_impulses``: one more traction, only for bodies that are pushed."""
+        """The load of ``add_vertex_impulses`` (the World's push from bodies of other methods, issue 18):
+        a traction of force / current vertex area, so the force and its momentum are exact (it
+        counts in ``load_impulse``); registered once, only for bodies that are pushed."""
         if not self._coupling_load:
             self._tractions.append(self._coupling_tractions)
             self._coupling_load = True
-
-    @property
-    def coupling_impulse(self) -> np.ndarray:
-        """Momentum handed to the body by ``add_vertex_impulses`` so far [N s] (world)."""
-        return np.zeros(3) if self.state is None else self.state.coupling_impulse
 
     def _coupling_tractions(self, t: float) -> np.ndarray:
         st = self.state
