@@ -21,7 +21,7 @@ import numpy as np
 
 from wsim import constraints as wc
 from wsim.body import Body
-from wsim.validate import finite_number, as_vec3, positive_int
+from wsim.validate import as_vec3, finite_number, positive_int
 from wsim.colliders import Collider, Surfaces
 from wsim.device import resolve_device
 from wsim.errors import InvalidParameter
@@ -367,20 +367,20 @@ def _advance_group(bodies: list[Body], joints: list, t1: float, device, contact:
         wc.solve_group(bodies, joints, device, tol, iterations, bodies[0].steps + 1, contact_margin=margin)
 
 
-def _couple_surfaces(pushers: Sequence[Body], pushed: Sequence[Body], start: dict[int, np.ndarray], frame_dt: float,
+def _couple_surfaces(pushers: Sequence[Body], pushed: Sequence[Body], start: dict[int, np.ndarray], interval: float,
                      g: float) -> None:
     """Explicit two-way coupling across methods (issue 18): each body that takes moving surfaces
-    (PBD) gets the surfaces of the bodies it may reach this frame (their vertices at the frame's
-    start and end: those bodies have already stepped), with the larger of the two frictions. What
-    it pushes them with comes back per vertex after its step and is delivered over the next frame
-    (``add_vertex_impulses``): one frame late, the momentum exact."""
+    (PBD) gets the surfaces of the bodies it may reach in this coupling interval (their vertices
+    at its start and end: those bodies have already stepped), with the larger of the two
+    frictions. What it pushes them with comes back per vertex after its step and is delivered
+    over the next interval (``add_vertex_impulses``): one interval late, the momentum exact."""
     from wsim.contact import DEFAULT_FRICTION
 
     ends = {id(b): b.points() for b in pushed}
     for p in pushers:
         x = p.points()
         speed = float(np.abs(p.velocities()).max(initial=0.0))
-        grow = speed * frame_dt + g * frame_dt**2 + getattr(p, "contact_margin", 0.0)
+        grow = speed * interval + g * interval**2 + getattr(p, "contact_margin", 0.0)
         lo, hi = x.min(axis=0) - grow, x.max(axis=0) + grow
         surfaces = []
         for b in pushed:
