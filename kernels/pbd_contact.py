@@ -100,6 +100,13 @@ def surface_contact(mesh: wp.uint64, p: wp.vec3, max_dist: float, margin: float)
     return margin - dist * wp.sign(q.sign), s, n, q.face, wp.vec3(q.u, q.v, 1.0 - q.u - q.v)
 
 
+@wp.func
+def face_vertices(mesh: wp.uint64, face: int) -> wp.vec3i:
+    """The vertex indices of a face of a Warp mesh (read from the mesh's own index buffer)."""
+    return wp.vec3i(wp.mesh_get_index(mesh, 3 * face), wp.mesh_get_index(mesh, 3 * face + 1),
+                    wp.mesh_get_index(mesh, 3 * face + 2))
+
+
 @wp.kernel
 def mesh_contact(
     dx: wp.array(dtype=wp.vec3),
@@ -163,7 +170,6 @@ def body_contact(
     x_prev: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     mesh: wp.uint64,
-    faces: wp.array(dtype=wp.vec3i),
     dx_b: wp.array(dtype=wp.vec3),
     dxc_b: wp.array(dtype=wp.vec3),
     x_prev_b: wp.array(dtype=wp.vec3),
@@ -173,7 +179,7 @@ def body_contact(
     mu: float,
 ):
     """A surface particle p of body A against the surface of body B (``mesh``: B's current surface
-    positions, ``faces`` its triangles): the point-triangle contact constraint
+    positions and triangles): the point-triangle contact constraint
     C = n . (p - s) - margin >= 0, s = sum_k b_k q_k the nearest point of B's surface (barycentric
     b_k on the triangle q_0 q_1 q_2) and n the outward normal there ([PBD] §3.5, applied to two
     deformable bodies). With the inverse masses w_p and w_k and W = w_p + sum_k b_k^2 w_k, a violated
@@ -188,7 +194,7 @@ def body_contact(
     depth, s, n, face, b = surface_contact(mesh, p, max_dist, margin)
     if depth <= 0.0:
         return
-    tri = faces[face]
+    tri = face_vertices(mesh, face)
     w = w_p
     for k in range(3):
         w += b[k] * b[k] * inv_mass_b[tri[k]]
@@ -222,7 +228,6 @@ def moving_surface_contact(
     x_prev: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     mesh: wp.uint64,
-    faces: wp.array(dtype=wp.vec3i),
     v_prev: wp.array(dtype=wp.vec3),
     margin: float,
     max_dist: float,
@@ -243,7 +248,7 @@ def moving_surface_contact(
     depth, s, n, face, b = surface_contact(mesh, p, max_dist, margin)
     if depth <= 0.0:
         return
-    tri = faces[face]
+    tri = face_vertices(mesh, face)
     s_prev = b[0] * v_prev[tri[0]] + b[1] * v_prev[tri[1]] + b[2] * v_prev[tri[2]]
     rel = (p + n * depth - x_prev[i]) - (s - s_prev)
     c = n * depth + friction_correction(rel, n, depth, mu)

@@ -45,3 +45,13 @@ def _isolated_cache(tmp_path_factory):
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(12345)
+
+
+@pytest.fixture(scope="session")
+def box_ops():
+    """Operators of the shared 26-node BEM cube (``bem_box``), built once per session on the CPU."""
+    from bem_box import BOX, DT, MAT
+
+    from wsim.bem import build_operators
+
+    return build_operators(BOX, MAT, DT, cache=False, device="cpu")

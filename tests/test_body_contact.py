@@ -12,15 +12,7 @@ import wsim
 from wsim.bem import build_operators
 from wsim.contact import points_inside
 
-G = 9.81
-DT = 2e-3
-MAT = wsim.ElasticMaterial(E=1.0e6, nu=0.3, rho=1000.0)
-BOX = trimesh.creation.box(extents=(0.2, 0.2, 0.2)).subdivide()
-
-
-@pytest.fixture(scope="module")
-def box_ops():
-    return build_operators(BOX, MAT, DT, cache=False, device="cpu")
+from bem_box import BOX, DT, G, MAT  # noqa: E402 (tests/ is on the path; box_ops: conftest.py)
 
 
 def _depth(a, b) -> float:

@@ -27,6 +27,11 @@ from wsim.kernels import mesh as km
 DEFAULT_FRICTION = 0.5
 
 
+def pair_friction(a: float | None, b: float | None) -> float:
+    """Coulomb friction between two bodies of frictions a and b (None: ``DEFAULT_FRICTION``): the larger."""
+    return max(DEFAULT_FRICTION if a is None else a, DEFAULT_FRICTION if b is None else b)
+
+
 @dataclass(frozen=True)
 class PairContacts:
     """Two-sided contacts between bodies a and b (k of them): ``refs_a`` and ``refs_b`` are the
@@ -84,7 +89,7 @@ def body_contacts(surfaces: Sequence[tuple[Any, np.ndarray, np.ndarray, np.ndarr
             if np.any(hi_i < lo_j) or np.any(hi_j < lo_i):
                 continue
             a, b = surfaces[i], surfaces[j]
-            mu = max(DEFAULT_FRICTION if a[4] is None else a[4], DEFAULT_FRICTION if b[4] is None else b[4])
+            mu = pair_friction(a[4], b[4])
             for (body_p, V_p, _, X_p, _), (body_f, V_f, F_f, X_f, _) in ((a, b), (b, a)):
                 lo, hi = V_f.min(axis=0) - margin, V_f.max(axis=0) + margin
                 near = np.flatnonzero(np.all((V_p >= lo) & (V_p <= hi), axis=1))

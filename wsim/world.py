@@ -186,6 +186,9 @@ class World:
             pbd = [b for b in self.bodies if hasattr(b, "advance_together")] if self.body_contact else []
             self._lockstep = pbd if len(pbd) > 1 else []
             self._lockstep_graphs: dict = {}  # the recorded lockstep frame (CUDA)
+            # explicit coupling across methods: bodies that are pushed (BEM, EoL) and that push (PBD)
+            self._pushed = [b for b in self.bodies if hasattr(b, "add_vertex_impulses")] if self.body_contact else []
+            self._pushers = [b for b in self.bodies if hasattr(b, "set_moving_surfaces")] if self._pushed else []
             if self.body_contact:  # bodies that can touch: participants of one dt
                 by_dt: dict[float, list[Body]] = {}
                 for b in self.bodies:
@@ -229,8 +232,7 @@ class World:
 
     def _advance_interval(self, t0: float, t1: float) -> None:
         grouped = {id(b) for bodies, _ in self._groups for b in bodies} | {id(b) for b in self._lockstep}
-        pushed = [b for b in self.bodies if hasattr(b, "add_vertex_impulses")] if self.body_contact else []
-        pushers = [b for b in self.bodies if hasattr(b, "set_moving_surfaces")] if pushed else []
+        pushed, pushers = self._pushed, self._pushers
         start = {id(b): b.points() for b in pushed} if pushers else {}
         # bodies that others are coupled to explicitly go first (BEM), then the rest (PBD)
         late = {id(b) for b in pushers}
@@ -374,7 +376,7 @@ def _couple_surfaces(pushers: Sequence[Body], pushed: Sequence[Body], start: dic
     at its start and end: those bodies have already stepped), with the larger of the two
     frictions. What it pushes them with comes back per vertex after its step and is delivered
     over the next interval (``add_vertex_impulses``): one interval late, the momentum exact."""
-    from wsim.contact import DEFAULT_FRICTION
+    from wsim.contact import pair_friction
 
     ends = {id(b): b.points() for b in pushed}
     for p in pushers:
@@ -386,7 +388,7 @@ def _couple_surfaces(pushers: Sequence[Body], pushed: Sequence[Body], start: dic
         for b in pushed:
             both = np.concatenate([start[id(b)], ends[id(b)]])
             if np.all(both.max(axis=0) >= lo) and np.all(both.min(axis=0) <= hi):
-                mu = max(DEFAULT_FRICTION if getattr(q, "friction", None) is None else q.friction for q in (p, b))
+                mu = pair_friction(getattr(p, "friction", None), getattr(b, "friction", None))
                 surfaces.append((id(b), start[id(b)], ends[id(b)], b.faces, mu))
         p.set_moving_surfaces(surfaces)
 

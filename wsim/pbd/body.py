@@ -85,7 +85,6 @@ class _MovingSurface:
     p1: wp.array
     prev: wp.array
     cur: wp.array
-    faces: wp.array
     indices: wp.array
     mesh: wp.Mesh
     friction: float
@@ -674,7 +673,7 @@ class PbdBody(Body):
             wp.launch(
                 kc.moving_surface_contact,
                 dim=m.n_surface,
-                inputs=[self.x_pred, self.dx, self.dxc, self.x_prev, self.inv_mass, ms.mesh.id, ms.faces, ms.prev,
+                inputs=[self.x_pred, self.dx, self.dxc, self.x_prev, self.inv_mass, ms.mesh.id, ms.prev,
                         self.contact_margin, ms.reach, ms.friction, 1.0 / h, ms.impulse],
             )
 
@@ -688,7 +687,7 @@ class PbdBody(Body):
         self._require_bound()
         d = self._device
         layout = [(k, len(p0), len(f)) for k, p0, _, f, _ in surfaces]
-        if layout != [(ms.key, ms.p0.shape[0], ms.faces.shape[0]) for ms in self._moving]:
+        if layout != [(ms.key, ms.p0.shape[0], ms.indices.shape[0] // 3) for ms in self._moving]:
             self._graph = None  # the frame's launches change
             self._moving = []
             for key, p0, _, faces, mu in surfaces:
@@ -698,7 +697,7 @@ class PbdBody(Body):
                 self._moving.append(_MovingSurface(
                     key=key, p0=wp.zeros(len(p0), dtype=wp.vec3, device=d), p1=wp.zeros(len(p0), dtype=wp.vec3, device=d),
                     prev=wp.zeros(len(p0), dtype=wp.vec3, device=d), cur=cur,
-                    faces=wp.array(f32, dtype=wp.vec3i, device=d), indices=indices,
+                    indices=indices,
                     mesh=wp.Mesh(points=cur, indices=indices), friction=float(mu), reach=0.0,
                     impulse=wp.zeros(len(p0), dtype=wp.vec3d, device=d)))
                 # how far from the surface a query looks (a particle deep inside is still found);

@@ -22,16 +22,11 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 import warp as wp
 
-from wsim.contact import DEFAULT_FRICTION
+from wsim.contact import pair_friction
 from wsim.kernels import pbd_contact as kc
 
 if TYPE_CHECKING:
     from wsim.pbd.body import PbdBody
-
-
-def _friction(a: PbdBody, b: PbdBody) -> float:
-    fa, fb = getattr(a, "friction", None), getattr(b, "friction", None)
-    return max(DEFAULT_FRICTION if fa is None else fa, DEFAULT_FRICTION if fb is None else fb)
 
 
 def _swept_box(body: PbdBody, frame_dt: float, reach: float) -> tuple[np.ndarray, np.ndarray]:
@@ -61,7 +56,6 @@ def _build_mesh(body: PbdBody) -> None:
     if getattr(body, "_contact_points", None) is None:
         body._contact_points = wp.zeros(n, dtype=wp.vec3, device=body._device)
         faces = np.ascontiguousarray(body.model.faces, dtype=np.int32)
-        body._contact_faces = wp.array(faces, dtype=wp.vec3i, device=body._device)
         body._contact_indices = wp.array(faces.ravel(), dtype=wp.int32, device=body._device)
     wp.copy(body._contact_points, body.x, count=n)
     body._contact_mesh = wp.Mesh(points=body._contact_points, indices=body._contact_indices)
@@ -81,7 +75,7 @@ def _project(a: PbdBody, b: PbdBody, mu: float) -> None:
     _refit(b)
     reach = b._contact_reach + max(a.contact_margin, b.contact_margin)
     wp.launch(kc.body_contact, dim=a.model.n_surface, device=a._device,
-              inputs=[a.x_pred, a.dx, a.dxc, a.x_prev, a.inv_mass, b._contact_mesh.id, b._contact_faces, b.dx, b.dxc,
+              inputs=[a.x_pred, a.dx, a.dxc, a.x_prev, a.inv_mass, b._contact_mesh.id, b.dx, b.dxc,
                       b.x_prev, b.inv_mass, max(a.contact_margin, b.contact_margin), reach, mu])
 
 
@@ -120,7 +114,7 @@ def advance_together(bodies: Sequence[PbdBody], t0: float, t1: float, graphs: di
     substeps = max(b.substeps_for(frame_dt) for b in group)
     h = frame_dt / substeps
     device = group[0]._device
-    mus = [_friction(a, b) for a, b in pairs]
+    mus = [pair_friction(getattr(a, "friction", None), getattr(b, "friction", None)) for a, b in pairs]
     key = (tuple(id(b) for b in group), tuple((id(a), id(b)) for a, b in pairs), substeps, h,
            tuple((ms.key, ms.mesh.id) for b in group for ms in b._moving))  # other methods' surfaces too
     use_graph = graphs is not None and device.is_cuda and all(b.use_graph for b in group)
