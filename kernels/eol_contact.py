@@ -50,7 +50,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from wsim.kernels.eol_grid import Grid, corner_weight
+from wsim.kernels.eol_grid import Grid, corner_weight, node_position
 
 
 @wp.struct
@@ -93,8 +93,9 @@ def sample_world(surf: ContactSurface, i: int):
 
 @wp.func
 def accumulate_row(acc: wp.array2d(dtype=wp.float64), flag: wp.array(dtype=wp.int32), surf: ContactSurface,
-                   collider: int, yp: wp.vec3d, coeff: wp.vec3d, rhs: wp.float64, overlap: wp.float64):
-    """Add one sample to its row: Phi_s(yp) coeff on the 8 nodes of its grid cell, rhs and overlap."""
+                   collider: int, yp: wp.vec3d, coeff: wp.vec3d, rhs: wp.float64, overlap: wp.float64) -> int:
+    """Add one sample to its row: Phi_s(yp) coeff on the 8 nodes of its grid cell, rhs and overlap;
+    returns the row's slot."""
     g = (yp - surf.grid.origin) / surf.grid.h
     cells = surf.grid.shape - wp.vec3i(1, 1, 1)
     cell = wp.vec3i()
@@ -131,19 +132,20 @@ def accumulate_row(acc: wp.array2d(dtype=wp.float64), flag: wp.array(dtype=wp.in
     n = acc.shape[1]
     wp.atomic_add(acc, row, n - 2, rhs)
     wp.atomic_add(acc, row, n - 1, overlap)
+    return row
 
 
 @wp.func
 def add_sample(acc: wp.array2d(dtype=wp.float64), flag: wp.array(dtype=wp.int32), surf: ContactSurface,
-               collider: int, yp: wp.vec3d, x: wp.vec3d, an: wp.vec3d, cn: wp.vec3d, depth: wp.float64,
-               G: wp.mat33d, g: wp.vec3d):
+               collider: int, yp: wp.vec3d, an: wp.vec3d, cn: wp.vec3d, depth: wp.float64, v_B: wp.vec3d):
     """A sample inside the collider: coefficient (n_A . n_B) n_B in the velocity axes (n_A projected
-    on the collider's normal: see the module docstring), right side that coefficient . v_B(x) -
-    overlap / tau with the collider's velocity v_B = G x + g, overlap |n_A . n_B| depth."""
+    on the collider's normal: see the module docstring), right side that coefficient . v_B -
+    overlap / tau with v_B the collider's velocity at the sample, overlap |n_A . n_B| depth.
+    Returns the row's slot."""
     proj = wp.dot(an, cn)
     vol = wp.abs(proj) * depth
     coeff = proj * cn
-    accumulate_row(acc, flag, surf, collider, yp, surf.to_axes * coeff, wp.dot(coeff, G * x + g) - vol * surf.inv_tau, vol)
+    return accumulate_row(acc, flag, surf, collider, yp, surf.to_axes * coeff, wp.dot(coeff, v_B) - vol * surf.inv_tau, vol)
 
 
 @wp.kernel
@@ -160,7 +162,7 @@ def plane_rows(
     yp, x, an = sample_world(surf, i)
     depth = height - wp.dot(normal, x)
     if depth > wp.float64(0.0):
-        add_sample(acc, flag, surf, collider, yp, x, an, normal, depth, wp.mat33d(), wp.vec3d())
+        add_sample(acc, flag, surf, collider, yp, an, normal, depth, wp.vec3d())
 
 
 @wp.kernel
@@ -186,7 +188,86 @@ def mesh_rows(
         closest = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
         n = wp.mesh_eval_face_normal(mesh, q.face)
         cn = rotation * wp.vec3d(wp.float64(n[0]), wp.float64(n[1]), wp.float64(n[2]))
-        add_sample(acc, flag, surf, collider, yp, x, an, cn, wp.float64(wp.length(closest - p)), G, g)
+        add_sample(acc, flag, surf, collider, yp, an, cn, wp.float64(wp.length(closest - p)), G * x + g)
+
+
+@wp.kernel
+def place_surface(p0: wp.array(dtype=wp.vec3d), p1: wp.array(dtype=wp.vec3d), f: wp.float64,
+                  cur: wp.array(dtype=wp.vec3)):
+    """A moving surface's vertices at fraction f of the interval (float32: a Warp mesh's points)."""
+    i = wp.tid()
+    p = p0[i] + f * (p1[i] - p0[i])
+    cur[i] = wp.vec3(float(p[0]), float(p[1]), float(p[2]))
+
+
+@wp.kernel
+def surface_rows(
+    surf: ContactSurface,
+    mesh: wp.uint64,
+    G: wp.mat33d,
+    g: wp.vec3d,
+    max_dist: float,
+    collider: int,
+    acc: wp.array2d(dtype=wp.float64),
+    flag: wp.array(dtype=wp.int32),
+    hit_row: wp.array(dtype=wp.int32),
+    hit_bary: wp.array(dtype=wp.vec3d),
+    hit_face: wp.array(dtype=wp.int32),
+):
+    """Samples inside another body's closed surface (``mesh``, world coordinates, where it is at
+    this step; issue 18). Its velocity v_B = G x + g is the rigid motion that best fits its
+    vertices over the coupling interval: the partner's own surface vibrations fed back through
+    v_B made a box resting on a box ring up until it sank in (the overlap term still follows the
+    actual surface). Each sample inside records its row slot, the nearest face and its
+    barycentric weights (``hit_*``; row -1: outside), so that ``surface_reaction`` can hand the
+    partner the opposite of what the rows push this body with."""
+    i = wp.tid()
+    hit_row[i] = -1
+    yp, x, an = sample_world(surf, i)
+    p = wp.vec3(float(x[0]), float(x[1]), float(x[2]))
+    q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
+    if q.result and q.sign < 0.0:
+        closest = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+        n = wp.mesh_eval_face_normal(mesh, q.face)
+        cn = wp.vec3d(wp.float64(n[0]), wp.float64(n[1]), wp.float64(n[2]))
+        hit_row[i] = add_sample(acc, flag, surf, collider, yp, an, cn, wp.float64(wp.length(closest - p)), G * x + g)
+        hit_bary[i] = wp.vec3d(wp.float64(q.u), wp.float64(q.v), wp.float64(1.0) - wp.float64(q.u) - wp.float64(q.v))
+        hit_face[i] = q.face
+
+
+@wp.kernel
+def surface_reaction(
+    surf: ContactSurface,
+    mesh: wp.uint64,
+    hit_row: wp.array(dtype=wp.int32),
+    hit_bary: wp.array(dtype=wp.vec3d),
+    hit_face: wp.array(dtype=wp.int32),
+    row_of_slot: wp.array(dtype=wp.int32),
+    lam: wp.array(dtype=wp.float64),
+    impulse: wp.array(dtype=wp.vec3d),
+):
+    """The partner's share of the contact impulse (Newton's third law): the rows push this body's
+    nodes by -J^T lambda, sample s of row r contributing -lambda_r c_s with c_s = (n_A . n_B) n_B
+    dGamma (world; its node weights sum to one); the partner receives +lambda_r c_s at the sample's
+    nearest point, spread over that face's vertices by the barycentric weights. ``lam`` is per
+    packed row (this step's lambda_0 + dt lambda_1)."""
+    i = wp.tid()
+    slot = hit_row[i]
+    if slot < 0:
+        return
+    r = row_of_slot[slot]
+    if r < 0:
+        return
+    l = lam[r]
+    if l == wp.float64(0.0):
+        return
+    yp, x, an = sample_world(surf, i)
+    n = wp.mesh_eval_face_normal(mesh, hit_face[i])
+    cn = wp.vec3d(wp.float64(n[0]), wp.float64(n[1]), wp.float64(n[2]))
+    J = l * wp.dot(an, cn) * cn
+    b = hit_bary[i]
+    for k in range(3):
+        wp.atomic_add(impulse, wp.mesh_get_index(mesh, 3 * hit_face[i] + k), b[k] * J)
 
 
 @wp.kernel
@@ -362,3 +443,68 @@ def apply_impulses(
                 c = row_coefficient(packed, i, slot) / mass[s]
                 wp.atomic_sub(w, s, l0 * c)
                 wp.atomic_sub(a, s, l1 * c)
+
+
+@wp.kernel
+def group_push(
+    surf: ContactSurface,
+    packed: wp.array2d(dtype=wp.float64),
+    row_id: wp.array(dtype=wp.int32),
+    mass: wp.array(dtype=wp.float64),
+    lam: wp.array(dtype=wp.float64),
+    group: int,
+    push: wp.array(dtype=wp.vec3d),
+):
+    """push = -M^-1 J^T lambda over the rows of one row group (a collider or another body's
+    surface): the velocity change its normal contact gave each node (velocity axes)."""
+    i = wp.tid()
+    nc = surf.ccells
+    if row_id[i] // (nc[0] * nc[1] * nc[2]) != group:
+        return
+    l = lam[i]
+    if l == wp.float64(0.0):
+        return
+    k1 = surf.block + 1
+    base = block_origin(row_id[i], surf)
+    for slot in range(k1 * k1 * k1):
+        s = slot_node(surf, base, slot)
+        if s >= 0:
+            if mass[s] > wp.float64(0.0):
+                wp.atomic_sub(push, s, l * row_coefficient(packed, i, slot) / mass[s])
+
+
+@wp.kernel
+def node_friction(
+    surf: ContactSurface,
+    push: wp.array(dtype=wp.vec3d),
+    mass: wp.array(dtype=wp.float64),
+    w0: wp.array(dtype=wp.vec3d),
+    w1: wp.array(dtype=wp.vec3d),
+    dt: wp.float64,
+    G: wp.mat33d,
+    g: wp.vec3d,
+    mu: wp.float64,
+    impulse: wp.array(dtype=wp.vec3d),
+):
+    """Coulomb friction at the grid nodes a surface pushes (grid-node friction, as in MPM contact):
+    with the node's normal velocity change dv_n = |push| along n = push / |push| and its slip
+    u_t, the tangential part of u - v_B (u = w0 + dt w1 the node's velocity after the normal
+    contact, v_B = G x + g the surface's), the slip changes by -u_t min(1, mu dv_n / |u_t|):
+    stopped if the push can, else reduced by mu times it (kinetic friction). Applied to w0 (the
+    dt-independent part); the momentum it takes, sum m dv_t, is added to ``impulse`` (velocity
+    axes) for the surface's body."""
+    s = wp.tid()
+    p = push[s]
+    pn = wp.length(p)
+    if pn == wp.float64(0.0) or mass[s] <= wp.float64(0.0):
+        return
+    n = p / pn
+    x = surf.F * node_position(s, surf.grid) + surf.T
+    rel = w0[s] + dt * w1[s] - surf.to_axes * (G * x + g)
+    slip = rel - wp.dot(n, rel) * n
+    st = wp.length(slip)
+    if st == wp.float64(0.0):
+        return
+    d = -slip * wp.min(wp.float64(1.0), mu * pn / st)
+    w0[s] = w0[s] + d
+    wp.atomic_add(impulse, 0, mass[s] * d)

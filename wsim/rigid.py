@@ -124,3 +124,19 @@ class RigidFrame:
     def reorthonormalize(self) -> None:
         """Remove the round-off that repeated products leave in R."""
         self.R = nearest_rotation(self.R)
+
+
+def rigid_fit(p0: np.ndarray, p1: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """The rigid velocity field v(x) = G x + g (G = [omega]x) that best fits, in least squares,
+    points moving from p0 to p1 (each (n, 3)) in dt seconds: the mean velocity plus the angular
+    velocity of the points' spread about their mean position (the 'inertia' of the points). A
+    degenerate spread (one point, collinear points) gets no spin about its own axis."""
+    x = 0.5 * (np.asarray(p0, dtype=np.float64) + np.asarray(p1, dtype=np.float64))
+    v = (np.asarray(p1, dtype=np.float64) - np.asarray(p0, dtype=np.float64)) / dt
+    c = x.mean(axis=0)
+    r = x - c
+    v_mean = v.mean(axis=0)
+    inertia = (r * r).sum() * np.eye(3) - r.T @ r
+    omega = np.linalg.lstsq(inertia, np.cross(r, v - v_mean).sum(axis=0), rcond=1e-12)[0]
+    G = cross_matrix(omega)
+    return G, v_mean - G @ c

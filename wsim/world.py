@@ -5,8 +5,11 @@ body covers that interval with its own internal steps (PBD substeps, BEM's fixed
 adaptive dt). After each frame every body is checked for NaN/Inf, and ``run`` hands the frame to
 the USD writer. BEM bodies of one dt that are joined by ``PointJoint`` s or may touch
 (``body_contact``) step together: one constraint solve per step covers all of them
-(``wsim.constraints.solve_group``, ``wsim.contact``). Bodies of different methods meet only
-through colliders in this version.
+(``wsim.constraints.solve_group``, ``wsim.contact``); PBD bodies that may touch step their
+substeps in lockstep (``wsim.pbd.contact``). Across methods, and between EoL bodies, contact is an
+explicit exchange at a coupling interval: one body (the pusher: PBD, or the lighter EoL body)
+keeps itself out of the other's surface as it moves over the interval and the other is handed
+the opposite impulse over the next interval (``_couple_surfaces``).
 """
 
 from __future__ import annotations
@@ -26,6 +29,11 @@ from wsim.colliders import Collider, Surfaces
 from wsim.device import resolve_device
 from wsim.errors import InvalidParameter
 from wsim.usd import UsdWriter, check_up_axis
+
+#: longest coupling interval [s] when EoL bodies push other bodies (``World(coupling_dt=None)``):
+#: the lag of the exchange makes a box resting on a box jitter (mean speed 1.5 cm/s at 1/240 s, 0.5 cm/s at
+#: 1/960 s), and a frame-long interval flings a light body off a heavy one (``tools/study_coupling.py``)
+EOL_COUPLING_DT = 1.0e-3
 
 _UP = {"Y": np.array([0.0, 1.0, 0.0]), "Z": np.array([0.0, 0.0, 1.0])}
 
@@ -63,16 +71,19 @@ class World:
         gravity: gravitational acceleration [m/s^2]; None means 9.81 m/s^2 down the up axis.
         device: Warp device ("cpu", "cuda:0", ...); None picks cuda:0 when present, else cpu.
         up_axis: "Y" or "Z", the axis the scene is built in (ground planes default to it).
-        coupling_dt: the interval [s] at which bodies of different methods exchange contact
-            (explicit coupling: a push reaches the other body one interval late); it must divide
-            the frame, and every BEM body's dt must divide it. None: automatic - with PBD bodies
-            and BEM or EoL bodies in one World, the shortest interval that is a whole number of
-            every BEM body's steps and at least one PBD substep; otherwise the frame. A frame-long
+        coupling_dt: the interval [s] at which bodies exchange contact explicitly (a push reaches
+            the other body one interval late): PBD with BEM and EoL bodies, EoL with BEM and with
+            other EoL bodies. It must divide the frame, and every BEM body's dt must divide it.
+            None: automatic - with PBD bodies and BEM or EoL bodies in one World, the shortest
+            interval that is a whole number of every BEM body's steps and at least one PBD
+            substep; with EoL bodies pushing (and no PBD) the longest interval of whole BEM steps
+            no longer than ``EOL_COUPLING_DT`` (1 ms); otherwise the frame. A frame-long
             interval made a thrown ball rebound 40 % too fast off a BEM cube (above the elastic
             bound: the lag adds energy; ``tools/study_coupling.py``).
-        body_contact: bodies of one method collide with each other: BEM bodies of one dt
-            (``wsim.contact``, one constraint solve per step) and PBD bodies (``wsim.pbd.contact``,
-            substeps in lockstep); False lets them pass through each other as before.
+        body_contact: bodies touch each other: BEM bodies of one dt (``wsim.contact``, one
+            constraint solve per step), PBD bodies (``wsim.pbd.contact``, substeps in lockstep) and
+            every pair across methods and of EoL bodies (explicit coupling, ``coupling_dt``);
+            False lets them pass through each other.
     """
 
     def __init__(
@@ -186,9 +197,21 @@ class World:
             pbd = [b for b in self.bodies if hasattr(b, "advance_together")] if self.body_contact else []
             self._lockstep = pbd if len(pbd) > 1 else []
             self._lockstep_graphs: dict = {}  # the recorded lockstep frame (CUDA)
-            # explicit coupling across methods: bodies that are pushed (BEM, EoL) and that push (PBD)
+            # explicit coupling: bodies that are pushed (BEM, EoL) and that push (EoL, PBD). A pusher
+            # keeps itself out of its targets' surfaces after they have stepped and hands them the
+            # momentum (``_targets``): EoL bodies push BEM bodies and heavier EoL bodies, PBD bodies
+            # push every BEM and EoL body, so pushers step in that order. The lighter of two EoL
+            # bodies pushes: a pusher meets its target's surface velocity, and the target is
+            # handed that momentum, which flings a target much lighter than the pusher
+            # (``tools/study_coupling.py``).
             self._pushed = [b for b in self.bodies if hasattr(b, "add_vertex_impulses")] if self.body_contact else []
-            self._pushers = [b for b in self.bodies if hasattr(b, "set_moving_surfaces")] if self._pushed else []
+            pushers = [b for b in self.bodies if hasattr(b, "set_moving_surfaces")] if self._pushed else []
+            self._pushers = sorted(pushers, key=lambda b: (hasattr(b, "advance_together"),
+                                                           0.0 if hasattr(b, "advance_together") else -b.mass))
+            rank = {id(b): i for i, b in enumerate(self._pushers)}
+            self._targets = {id(p): [b for b in self._pushed if b is not p and rank.get(id(b), -1) < rank[id(p)]]
+                             for p in self._pushers}
+            self._pushers = [p for p in self._pushers if self._targets[id(p)]]
             if self.body_contact:  # bodies that can touch: participants of one dt
                 by_dt: dict[float, list[Body]] = {}
                 for b in self.bodies:
@@ -232,20 +255,22 @@ class World:
 
     def _advance_interval(self, t0: float, t1: float) -> None:
         grouped = {id(b) for bodies, _ in self._groups for b in bodies} | {id(b) for b in self._lockstep}
-        pushed, pushers = self._pushed, self._pushers
-        start = {id(b): b.points() for b in pushed} if pushers else {}
-        # bodies that others are coupled to explicitly go first (BEM), then the rest (PBD)
+        pushers = self._pushers
         late = {id(b) for b in pushers}
+        start = {id(b): b.points() for b in self._pushed} if pushers else {}
+        g = float(np.linalg.norm(self.gravity))
+        # bodies that push nothing go first (their surfaces are then known over the interval) ...
         for body in self.bodies:
             if id(body) not in grouped and id(body) not in late and (self.coupling_steps == 1 or _couples(body)):
                 body.advance(t0, t1)
         for bodies, joints in self._groups:
             _advance_group(bodies, joints, t1, self.device, self.body_contact)
-        if pushers:
-            _couple_surfaces(pushers, pushed, start, t1 - t0, float(np.linalg.norm(self.gravity)))
-        for body in self.bodies:
-            if id(body) not in grouped and id(body) in late:
-                body.advance(t0, t1)
+        # ... then each pusher after the bodies it pushes (EoL bodies in order, then PBD)
+        lockstep = {id(b) for b in self._lockstep}
+        for p in pushers:
+            _couple_surfaces(p, self._targets[id(p)], start, t1 - t0, g)
+            if id(p) not in lockstep:
+                p.advance(t0, t1)
         if self._lockstep:
             type(self._lockstep[0]).advance_together(self._lockstep, t0, t1, self._lockstep_graphs)
         if pushers:
@@ -253,7 +278,7 @@ class World:
             for b in pushers:
                 for key, J in b.moving_surface_impulses().items():
                     impulses[key] = impulses.get(key, 0.0) + J
-            for b in pushed:
+            for b in self._pushed:
                 if id(b) in impulses:
                     b.add_vertex_impulses(impulses[id(b)], t1 - t0)
 
@@ -369,38 +394,47 @@ def _advance_group(bodies: list[Body], joints: list, t1: float, device, contact:
         wc.solve_group(bodies, joints, device, tol, iterations, bodies[0].steps + 1, contact_margin=margin)
 
 
-def _couple_surfaces(pushers: Sequence[Body], pushed: Sequence[Body], start: dict[int, np.ndarray], interval: float,
+def _couple_surfaces(pusher: Body, targets: Sequence[Body], start: dict[int, np.ndarray], interval: float,
                      g: float) -> None:
-    """Explicit two-way coupling across methods (issue 18): each body that takes moving surfaces
-    (PBD) gets the surfaces of the bodies it may reach in this coupling interval (their vertices
-    at its start and end: those bodies have already stepped), with the larger of the two
+    """Explicit two-way coupling between bodies (issue 18): a body that takes moving surfaces (EoL,
+    PBD) gets the surfaces of its ``targets`` it may reach in this coupling interval (their
+    vertices at its start and end: those bodies have already stepped), with the larger of the two
     frictions. What it pushes them with comes back per vertex after its step and is delivered
     over the next interval (``add_vertex_impulses``): one interval late, the momentum exact."""
     from wsim.contact import pair_friction
 
-    ends = {id(b): b.points() for b in pushed}
-    for p in pushers:
-        x = p.points()
-        speed = float(np.abs(p.velocities()).max(initial=0.0))
-        grow = speed * interval + g * interval**2 + getattr(p, "contact_margin", 0.0)
-        lo, hi = x.min(axis=0) - grow, x.max(axis=0) + grow
-        surfaces = []
-        for b in pushed:
-            both = np.concatenate([start[id(b)], ends[id(b)]])
-            if np.all(both.max(axis=0) >= lo) and np.all(both.min(axis=0) <= hi):
-                mu = pair_friction(getattr(p, "friction", None), getattr(b, "friction", None))
-                surfaces.append((id(b), start[id(b)], ends[id(b)], b.faces, mu))
-        p.set_moving_surfaces(surfaces)
+    x = pusher.points()
+    grow = _max_speed(pusher) * interval + g * interval**2 + getattr(pusher, "contact_margin", 0.0)
+    lo, hi = x.min(axis=0) - grow, x.max(axis=0) + grow
+    surfaces = []
+    for b in targets:
+        end = b.points()
+        both = np.concatenate([start[id(b)], end])
+        if np.all(both.max(axis=0) >= lo) and np.all(both.min(axis=0) <= hi):
+            mu = pair_friction(getattr(pusher, "friction", None), getattr(b, "friction", None))
+            surfaces.append((id(b), start[id(b)], end, b.faces, mu))
+    pusher.set_moving_surfaces(surfaces)
+
+
+def _max_speed(body: Body) -> float:
+    """The fastest point of a body [m/s] (a PBD particle, an EoL grid node with material)."""
+    if hasattr(body, "velocities"):
+        return float(np.abs(body.velocities()).max(initial=0.0))
+    v = body.node_world_velocities()[body.node_masses() > 0.0]
+    return float(np.linalg.norm(v, axis=1).max(initial=0.0))
 
 
 def _automatic_coupling_steps(bodies: Sequence[Body], frame_dt: float) -> int:
     """Coupling intervals per frame when the World is not told (``coupling_dt=None``): 1 unless
-    PBD bodies meet BEM or EoL bodies; then the largest k that splits the frame into whole numbers
-    of every BEM body's steps and gives each interval at least one substep of every PBD body."""
-    pushers = [b for b in bodies if hasattr(b, "set_moving_surfaces")]
-    if not pushers or not any(hasattr(b, "add_vertex_impulses") for b in bodies):
-        return 1
-    limit = min(b.substeps_for(frame_dt) for b in pushers)
+    bodies push others (``World._targets``). With PBD bodies and BEM or EoL bodies: the largest k
+    that splits the frame into whole numbers of every BEM body's steps and gives each interval at
+    least one substep of every PBD body; with EoL bodies pushing (and no PBD): the smallest k
+    whose intervals hold whole BEM steps and are no longer than ``EOL_COUPLING_DT``."""
+    pbd = [b for b in bodies if hasattr(b, "advance_together")]
+    eol = [b for b in bodies if hasattr(b, "set_moving_surfaces") and hasattr(b, "add_vertex_impulses")]
+    pushed = [b for b in bodies if hasattr(b, "add_vertex_impulses")]
+    if not (pbd and pushed) and not (eol and len(pushed) > 1):
+        return 1  # nothing pushes anything (an EoL body pushes a BEM or another EoL body)
     steps = []
     for b in bodies:
         dt = getattr(b, "dt", None) if hasattr(b, "constraint_begin") else None
@@ -409,7 +443,13 @@ def _automatic_coupling_steps(bodies: Sequence[Body], frame_dt: float) -> int:
             if abs(n - round(n)) > 1e-6:
                 return 1  # a BEM body whose dt does not divide the frame: couple at the frame
             steps.append(int(round(n)))
-    return max(k for k in range(1, limit + 1) if all(n % k == 0 for n in steps))
+    if pbd and pushed:
+        limit = min(b.substeps_for(frame_dt) for b in pbd)
+        return max(k for k in range(1, limit + 1) if all(n % k == 0 for n in steps))
+    # EoL bodies pushing: intervals of at most EOL_COUPLING_DT that hold whole BEM steps
+    want = math.ceil(frame_dt / EOL_COUPLING_DT - 1e-9)
+    fits = [k for k in range(1, max([want] + steps) + 1) if all(n % k == 0 for n in steps)]
+    return min([k for k in fits if k >= want] or [max(fits)])
 
 
 def _couples(body: Body) -> bool:

@@ -23,8 +23,9 @@ One step (Table II's stages):
 6. **track**: Algorithm 2 for the material points and the surface; **plasticity** (Eqs. 34-37).
 
 Precision: float64 everywhere on the grid (strain is a difference of nearby absolute coordinates;
-the paper's J-bar and LS sums are ill-conditioned in float32). Friction is not modelled (as in
-the paper): contact is the frictionless volume constraint.
+the paper's J-bar and LS sums are ill-conditioned in float32). Contact with colliders is the
+paper's frictionless volume constraint. Other bodies' surfaces (``set_moving_surfaces``, issue 18)
+get the same rows, plus Coulomb friction at the grid nodes they push.
 """
 
 from __future__ import annotations
@@ -56,7 +57,7 @@ from wsim.kernels import eol_plastic as kp
 from wsim.kernels import eol_step as ks
 from wsim.kernels.eol_grid import grid_struct
 from wsim.materials import ElasticMaterial
-from wsim.rigid import advance_pose, cross_matrix
+from wsim.rigid import advance_pose, cross_matrix, rigid_fit
 from wsim.validate import as_rotation, as_vec3, finite_number, positive_int
 
 if TYPE_CHECKING:
@@ -64,6 +65,30 @@ if TYPE_CHECKING:
 
 LAGRANGIAN = ("rigid", "affine", "eulerian")
 STAGES = ("forces", "collision", "assembly", "qp", "ls", "advect", "track", "plasticity")
+
+
+@dataclass(eq=False)
+class _MovingSurface:
+    """Another body's surface this body may touch during one ``advance`` (``set_moving_surfaces``):
+    its vertices at the start and end (world, float64), where they are now (float32, the Warp
+    mesh's points), their velocity, and the impulse this body gives them (per vertex, world)."""
+
+    key: int
+    p0: wp.array
+    p1: wp.array
+    cur: wp.array
+    mesh: wp.Mesh
+    n_faces: int
+    impulse: wp.array
+    step_impulse: wp.array
+    mu: float = 0.0
+    reach: float = 0.0
+    hits: tuple | None = None
+    p0_host: np.ndarray | None = None
+    p1_host: np.ndarray | None = None
+    G: np.ndarray | None = None  # the rigid fit of its motion, v = G x + g (world)
+    g: np.ndarray | None = None
+    friction: np.ndarray | None = None  # friction impulse this body took from it this step (world)
 
 
 @dataclass(frozen=True)
@@ -154,6 +179,9 @@ class EolBody(VertexImpulses, Body):
             the frame and leaves the rest as Eulerian velocity (a rigid field: v = 0 exactly).
         coriolis: "midpoint" (default: the Coriolis term -2 L v at the step's midpoint velocity,
             ``eol_step.coriolis_matrix``) or "explicit" (forward Euler, the earlier scheme).
+        friction: Coulomb coefficient against other bodies (the larger of the two bodies' values;
+            None: ``wsim.contact.DEFAULT_FRICTION`` unless the other gives one). Contact with the
+            World's colliders is frictionless, as in the paper.
 
     Loads: ``add_traction`` (surface tractions [Pa], world axes), ``add_body_force`` (accelerations
     [m/s^2]); ``load_impulse`` is the momentum they delivered. A body that starts more than half a
@@ -192,9 +220,13 @@ class EolBody(VertexImpulses, Body):
         position: Sequence[float] = (0.0, 0.0, 0.0),
         velocity_field: Callable[[np.ndarray], Any] | None = None,
         coriolis: str = "midpoint",
+        friction: float | None = None,
     ) -> None:
         super().__init__(name, velocity, angular_velocity)
         p = f"body '{name}'"
+        self.friction = None if friction is None else finite_number(friction, f"{p}: friction")
+        if self.friction is not None and self.friction < 0.0:
+            raise InvalidParameter(f"{p}: friction = {friction} must be >= 0")
         self._offset = as_vec3(position, f"{p}: position [m]")
         if velocity_field is not None and not callable(velocity_field):
             raise InvalidParameter(f"{p}: velocity_field must be a callable fn(x) -> (n, 3) velocities [m/s], "
@@ -535,20 +567,20 @@ class EolBody(VertexImpulses, Body):
         if self._tractions:
             V = self._n_surface
             tr = sum(self._load_value(fn(t), (V, 3), "a traction [Pa]", t) for fn in self._tractions)
-            work.append((self.state.y_vertices, self.vertex_areas()[:, None] * tr))
+            work.append((self.state.y_vertices, self.vertex_areas()[:, None] * tr, 1))
         if self._point_forces:
             st = self.state
             x = st.y_points.numpy() @ st.F.T + st.T
             acc = sum(self._load_value(fn(t, x), x.shape, "a body force (acceleration [m/s^2] per point)", t)
                       for fn in self._point_forces)
-            work.append((st.y_points, (self.material.rho * self._volumes)[:, None] * acc))
+            work.append((st.y_points, (self.material.rho * self._volumes)[:, None] * acc, 0))
         shape = self.grid.node_shape
         self._tmp.zero_()
         applied = wp.zeros(1, dtype=wp.vec3d, device=d)
-        for y, f_world in work:
+        for y, f_world, surface in work:
             wp.launch(kl.scatter_point_forces, dim=len(f_world), device=d,
                       inputs=[y, wp.array(f_world @ A, dtype=wp.vec3d, device=d), self._mass.reshape(shape),
-                              self._grid, self._tmp.reshape(shape), applied])
+                              self._grid, surface, self._tmp.reshape(shape), applied])
         wp.launch(ks.add_acceleration, dim=self.grid.n_nodes, device=d, inputs=[self._tmp, self._mass, self._a])
         self._load_force = A @ np.array(applied.numpy()[0])
 
@@ -623,6 +655,9 @@ class EolBody(VertexImpulses, Body):
         self._m_total = 0.0
         self._load_force = np.zeros(3)
         self._colliders: list[Collider] = []
+        self._surface = None  # contact samples and rows, made once the body can touch something
+        self._moving: list[_MovingSurface] = []  # other bodies' surfaces in reach this advance
+        self._span = (0.0, 1.0)
         self._force_pass()
         if self._velocity_field is not None:
             self._set_velocity_field()
@@ -679,8 +714,8 @@ class EolBody(VertexImpulses, Body):
         st.grid_grown = grown.copy()
         st.active_rows = np.zeros(0, dtype=np.int64)
         self._allocate_grid_arrays()
-        if self._colliders:
-            self.attach_colliders(self._surfaces)
+        if self._surface is not None:  # rows laid out on the new grid
+            self._contact_slots(self._row_groups, regrid=True)
         self._force_pass()
 
     def _grow_grid(self) -> bool:
@@ -741,32 +776,89 @@ class EolBody(VertexImpulses, Body):
     def attach_colliders(self, surfaces: Surfaces) -> None:
         self._surfaces = surfaces
         self._colliders = list(surfaces)
-        if self._colliders:  # contact samples and row accumulators, only for a scene with colliders
+        self._surface = None
+        self._contact_slots(len(self._colliders))
+
+    def _contact_slots(self, n: int, regrid: bool = False) -> None:
+        """Contact samples and row accumulators for n row groups (colliders, then other bodies'
+        surfaces), made only once the body can touch something and grown, never shrunk, with n;
+        ``regrid``: laid out again on a new grid."""
+        if n == 0 or (self._surface is not None and not regrid and n <= self._row_groups):
+            return
+        d = self._device
+        k = self.collision_block
+        if self._surface is None:
             face, bary, share = surface_samples(self._z_vertices, self._tracked_faces,
                                                 self._positive["contact_spacing"] * self.grid.h)
-            d = self._device
-            k = self.collision_block
-            self._ccells = tuple(-(-c // k) for c in self.grid.cells)
             surf = kc.ContactSurface()  # the constant part; the frame is set each step
             surf.y, surf.faces = self.state.y_vertices, self._faces_dev
             surf.sample_face = wp.array(face, dtype=wp.int32, device=d)
             surf.sample_bary = wp.array(bary, dtype=wp.vec3d, device=d)
             surf.sample_share = wp.array(share, dtype=wp.float64, device=d)
             surf.inv_tau = wp.float64(1.0 / self._positive["contact_relaxation"])
-            surf.grid = self._grid
-            surf.block, surf.ccells = k, wp.vec3i(*self._ccells)
-            surf.mass = self._mass  # the lumped masses (updated in place by each force pass)
             self._surface = surf
-            n_rows = len(self._colliders) * int(np.prod(self._ccells))
-            width = 3 * (k + 1) ** 3 + 2
-            # slots for every (collider, collision cell), cleared by compact_rows after each use
-            self._row_acc = wp.zeros((n_rows, width), dtype=wp.float64, device=d)
-            self._row_flag = wp.zeros(n_rows, dtype=wp.int32, device=d)
-            self._row_ids = wp.zeros(n_rows, dtype=wp.int32, device=d)
-            self._row_packed = wp.zeros((n_rows, width), dtype=wp.float64, device=d)
-            self._row_of_slot = wp.full(n_rows, -1, dtype=wp.int32, device=d)
-            self._n_rows = wp.zeros(1, dtype=wp.int32, device=d)
-            self._system = wp.empty(0, dtype=wp.float64, device=d)  # S and the row vectors, grown on demand
+        surf = self._surface
+        self._ccells = tuple(-(-c // k) for c in self.grid.cells)
+        surf.grid = self._grid
+        surf.block, surf.ccells = k, wp.vec3i(*self._ccells)
+        surf.mass = self._mass  # the lumped masses (updated in place by each force pass)
+        self._row_groups = n
+        n_rows = n * int(np.prod(self._ccells))
+        width = 3 * (k + 1) ** 3 + 2
+        # slots for every (collider, collision cell), cleared by compact_rows after each use
+        self._row_acc = wp.zeros((n_rows, width), dtype=wp.float64, device=d)
+        self._row_flag = wp.zeros(n_rows, dtype=wp.int32, device=d)
+        self._row_ids = wp.zeros(n_rows, dtype=wp.int32, device=d)
+        self._row_packed = wp.zeros((n_rows, width), dtype=wp.float64, device=d)
+        self._row_of_slot = wp.full(n_rows, -1, dtype=wp.int32, device=d)
+        self._n_rows = wp.zeros(1, dtype=wp.int32, device=d)
+        self._system = wp.empty(0, dtype=wp.float64, device=d)  # S and the row vectors, grown on demand
+
+    def set_moving_surfaces(self, surfaces: Sequence[tuple[int, np.ndarray, np.ndarray, np.ndarray, float]]) -> None:
+        """Surfaces of other bodies that move on their own over the coming ``advance`` and may touch
+        this one (issue 18): (key, vertices at its start (V, 3), at its end (V, 3), faces (M, 3),
+        friction). They move linearly between the two; this body's contact rows (Eq. 28) keep it
+        out of them as out of a moving collider, each at the velocity of its vertices, and the
+        opposite of what the rows push with is collected per vertex (``moving_surface_impulses``)
+        for the World to hand to their bodies. Called by the World before each ``advance``; an
+        empty list ends the coupling. The normal contact is the paper's volume constraint, against
+        the rigid motion that best fits the surface's vertices over the interval; Coulomb friction
+        with coefficient ``friction`` acts at the grid nodes it pushes (``kernels.eol_contact.node_friction``)."""
+        self._require_bound()
+        d = self._device
+        keep = {ms.key: ms for ms in self._moving}
+        moving = []
+        for key, p0, p1, faces, mu in surfaces:
+            p0 = np.asarray(p0, dtype=np.float64)
+            ms = keep.get(key)
+            if ms is None or ms.p0.shape[0] != len(p0) or ms.n_faces != len(faces):
+                cur = wp.array(p0.astype(np.float32), dtype=wp.vec3, device=d)
+                ms = _MovingSurface(key=key, p0=wp.zeros(len(p0), dtype=wp.vec3d, device=d),
+                                    p1=wp.zeros(len(p0), dtype=wp.vec3d, device=d), cur=cur,
+                                    mesh=wp.Mesh(points=cur, indices=wp.array(np.ascontiguousarray(faces, dtype=np.int32).ravel(),
+                                                                              dtype=wp.int32, device=d)),
+                                    n_faces=len(faces), impulse=wp.zeros(len(p0), dtype=wp.vec3d, device=d),
+                                    step_impulse=wp.zeros(len(p0), dtype=wp.vec3d, device=d))
+            ms.p0_host, ms.p1_host = p0, np.asarray(p1, dtype=np.float64)
+            ms.p0.assign(ms.p0_host)
+            ms.p1.assign(ms.p1_host)
+            ms.impulse.zero_()
+            ms.mu = float(mu)
+            both = np.concatenate([p0, np.asarray(p1)])
+            ms.reach = 2.0 * float(np.linalg.norm(np.ptp(both, axis=0))) + self.grid.h
+            moving.append(ms)
+        self._moving = moving
+        self._contact_slots(len(self._colliders) + len(moving))
+        P = 0 if self._surface is None else self._surface.sample_face.shape[0]
+        for ms in moving:
+            if ms.hits is None:  # per contact sample: its row, barycentric weights and face on this surface
+                ms.hits = (wp.full(P, -1, dtype=wp.int32, device=d), wp.zeros(P, dtype=wp.vec3d, device=d),
+                           wp.zeros(P, dtype=wp.int32, device=d))
+
+    def moving_surface_impulses(self) -> dict[int, np.ndarray]:
+        """Momentum [N s] (V, 3) per vertex that each moving surface received from this body over
+        the last ``advance`` (world axes), by key."""
+        return {ms.key: ms.impulse.numpy() for ms in self._moving}
 
     def advance(self, t0: float, t1: float) -> None:
         """Adaptive steps (Eq. 33) from the body's time to t1, each capped by the frame end, the
@@ -776,6 +868,9 @@ class EolBody(VertexImpulses, Body):
             self._check_initial_overlap()
             self._overlap_checked = True
         eps = 1e-9 * max(t1 - t0, 1e-12)
+        self._span = (self.time, t1)  # where the moving surfaces are: linear over this advance
+        for ms in self._moving:
+            ms.G, ms.g = rigid_fit(ms.p0_host, ms.p1_host, t1 - self.time)
         while self._failure is None and self.time < t1 - eps:
             cap = min(t1 - self.time, self.dt_elastic, self.dt_max or math.inf)
             self._step(cap)
@@ -849,7 +944,7 @@ class EolBody(VertexImpulses, Body):
         # 2-3. collision, assembly (S = J M^-1 J^T and the rows' rates on the device), QP
         m = n_active = 0
         system = sol = None
-        if self._colliders:
+        if self._colliders or self._moving:
             self._collide()
             t = self._tick("collision", t)
             m = self._compact()
@@ -880,6 +975,8 @@ class EolBody(VertexImpulses, Body):
                 wp.launch(kc.apply_impulses, dim=m, device=d,
                           inputs=[self._surface, self._row_packed, self._row_ids, self._mass,
                                   wp.array(lam, dtype=wp.float64, device=d), self._w, self._a])
+                if self._moving:
+                    self._friction(lam[:, 0] + dt_guess * lam[:, 1], dt_guess)
                 n_active = int(sol.active.sum())
                 t = self._tick("qp", t)
             # 4. least-squares split of both parts (Eqs. 23-25, 32) and the step size (Eq. 33)
@@ -929,6 +1026,8 @@ class EolBody(VertexImpulses, Body):
         L_new, c_new = L0 + dt * L1, c0 + dt * c1
         if sol is not None:  # momentum the QP delivered: sum_s m_s (w_s - w_hat_s) = -J^T lambda
             st.contact_impulse = st.contact_impulse - self._axes() @ ((sol.lam0 + dt * sol.lam1) @ system.jsum)
+            if self._moving:
+                st.contact_impulse = st.contact_impulse + self._react(lam[:, 0] + dt * lam[:, 1])
         t = self._tick("ls", t)
         # 5. advect v* by itself, then z by v^{t+1} (Algorithm 1), and move the frame
         self._advect_fields(dt)
@@ -1026,6 +1125,55 @@ class EolBody(VertexImpulses, Body):
                           inputs=[surf, col.device_mesh(d).id, wp.mat44d(*np.linalg.inv(M).ravel()),
                                   _mat(M[:3, :3]), float(col.extent), _mat(G), wp.vec3d(*g), ci,
                                   self._row_acc, self._row_flag])
+        t0, t1 = self._span
+        f = min(max((self.state.time - t0) / max(t1 - t0, 1e-300), 0.0), 1.0)
+        for k, ms in enumerate(self._moving):  # other bodies' surfaces, where they are at this step
+            wp.launch(kc.place_surface, dim=ms.p0.shape[0], device=d, inputs=[ms.p0, ms.p1, wp.float64(f), ms.cur])
+            ms.mesh.refit()
+            wp.launch(kc.surface_rows, dim=surf.sample_face.shape[0], device=d,
+                      inputs=[surf, ms.mesh.id, _mat(ms.G), wp.vec3d(*ms.g), float(ms.reach), len(self._colliders) + k,
+                              self._row_acc, self._row_flag, *ms.hits])
+
+    def _friction(self, lam: np.ndarray, dt: float) -> None:
+        """Coulomb friction against each moving surface at the nodes its rows pushed (``lam``: the
+        multipliers at dt, device row order), on w0; the impulses are kept for ``_react``."""
+        d = self._device
+        lam_d = wp.array(lam, dtype=wp.float64, device=d)
+        m = len(lam)
+        for k, ms in enumerate(self._moving):
+            ms.friction = np.zeros(3)
+            if ms.mu <= 0.0:
+                continue
+            self._tmp.zero_()
+            wp.launch(kc.group_push, dim=m, device=d,
+                      inputs=[self._surface, self._row_packed, self._row_ids, self._mass, lam_d,
+                              len(self._colliders) + k, self._tmp])
+            acc = wp.zeros(1, dtype=wp.vec3d, device=d)
+            wp.launch(kc.node_friction, dim=self.grid.n_nodes, device=d,
+                      inputs=[self._surface, self._tmp, self._mass, self._w, self._a, wp.float64(dt), _mat(ms.G),
+                              wp.vec3d(*ms.g), wp.float64(ms.mu), acc])
+            ms.friction = self._axes() @ acc.numpy()[0]
+
+    def _react(self, lam: np.ndarray) -> np.ndarray:
+        """Hand each moving surface the opposite of the impulse this body took from it this step:
+        the normal part per sample (``lam``: the step's multipliers, device row order), the
+        friction spread over the vertices in proportion to their normal part. Returns the total
+        friction impulse this body took (world)."""
+        d = self._device
+        lam_d = wp.array(lam, dtype=wp.float64, device=d)
+        total = np.zeros(3)
+        for ms in self._moving:
+            ms.step_impulse.zero_()
+            wp.launch(kc.surface_reaction, dim=self._surface.sample_face.shape[0], device=d,
+                      inputs=[self._surface, ms.mesh.id, *ms.hits, self._row_of_slot, lam_d, ms.step_impulse])
+            J = ms.step_impulse.numpy()
+            if ms.friction is not None and np.any(ms.friction):
+                weight = np.linalg.norm(J, axis=1)
+                if weight.sum() > 0.0:
+                    J = J - np.outer(weight / weight.sum(), ms.friction)
+                    total += ms.friction
+            ms.impulse.assign(ms.impulse.numpy() + J)
+        return total
 
     def _compact(self) -> int:
         """Pack the rows that received samples (their data stay on the device); their number m."""
@@ -1045,7 +1193,7 @@ class EolBody(VertexImpulses, Body):
         self._system[: m * m].zero_()
         wp.launch(kc.row_products, dim=m, device=d, inputs=[self._surface, self._row_packed, self._row_ids, self._mass,
                                                            self._w, self._a, m, self._system])
-        wp.launch(kc.schur_complement, dim=(m, 27 * len(self._colliders)), device=d,
+        wp.launch(kc.schur_complement, dim=(m, 27 * self._row_groups), device=d,
                   inputs=[self._surface, self._row_packed, self._row_ids, self._row_of_slot, self._mass, m,
                           self._system])
         ids = self._row_ids[:m].numpy().astype(np.int64)
