@@ -59,7 +59,8 @@ def test_eol_multi_body_scenes_run_and_write_usd(tmp_path, scene):
 
 
 @pytest.mark.parametrize("scene, floor", [("bem_cube_drop", 1e-4), ("bem_glued_cubes", 1e-4), ("bem_friction", 1e-4),
-                                          ("bem_pile", 1e-4), ("bem_fish_bowl", 1e-4), ("mixed_drop", 1e-3)])
+                                          ("bem_pile", 1e-4), ("bem_fish_bowl", 1e-4), ("mixed_drop", 1e-3),
+                                          ("showcase", 1e-3)])
 def test_bem_constraint_scenes_run_and_write_usd(tmp_path, scene, floor):
     """The BEM contact and joint scenes, and the three methods together, end to end with their
     procedural bodies (small enough for a CPU operator build): every body written for every frame,
