@@ -120,6 +120,8 @@ class World:
                                        f"into whole intervals")
             self.coupling_steps = k
         self._groups: list[tuple[list[Body], list]] = []  # bodies stepped together, their joints as points
+        self.timings: dict[str, float] = {}  # seconds per stage: each method's stepping, "coupling"
+        self.profile = False  # synchronize the device after each stage (``timings`` then splits GPU time)
 
     @property
     def frame_dt(self) -> float:
@@ -248,39 +250,56 @@ class World:
         if k > 1:  # bodies that take no part in contact step the whole frame at once
             for body in self.bodies:
                 if not _couples(body):
-                    body.advance(self.frame / self.fps, (self.frame + 1) / self.fps)
+                    self._timed(_stage(body), body.advance, self.frame / self.fps, (self.frame + 1) / self.fps)
         for i in range(k):  # coupling intervals of the frame
             self._advance_interval((self.frame * k + i) / (self.fps * k), (self.frame * k + i + 1) / (self.fps * k))
         self.frame += 1
+
+    def _timed(self, stage: str, fn: Callable, *args) -> None:
+        """Run fn(*args) and add its seconds to ``timings[stage]`` (after a device synchronization
+        when ``profile`` is on, so GPU time lands in its own stage)."""
+        t = _time.perf_counter()
+        fn(*args)
+        if self.profile and not self.device.is_cpu:
+            import warp as wp
+
+            wp.synchronize_device(self.device)
+        self.timings[stage] = self.timings.get(stage, 0.0) + _time.perf_counter() - t
 
     def _advance_interval(self, t0: float, t1: float) -> None:
         grouped = {id(b) for bodies, _ in self._groups for b in bodies} | {id(b) for b in self._lockstep}
         pushers = self._pushers
         late = {id(b) for b in pushers}
-        start = {id(b): b.points() for b in self._pushed} if pushers else {}
+        start: dict[int, np.ndarray] = {}
+        if pushers:
+            self._timed("coupling", lambda: start.update({id(b): b.points() for b in self._pushed}))
         g = float(np.linalg.norm(self.gravity))
         # bodies that push nothing go first (their surfaces are then known over the interval) ...
         for body in self.bodies:
             if id(body) not in grouped and id(body) not in late and (self.coupling_steps == 1 or _couples(body)):
-                body.advance(t0, t1)
+                self._timed(_stage(body), body.advance, t0, t1)
         for bodies, joints in self._groups:
-            _advance_group(bodies, joints, t1, self.device, self.body_contact)
+            self._timed("bem", _advance_group, bodies, joints, t1, self.device, self.body_contact)
         # ... then each pusher after the bodies it pushes (EoL bodies in order, then PBD)
         lockstep = {id(b) for b in self._lockstep}
         for p in pushers:
-            _couple_surfaces(p, self._targets[id(p)], start, t1 - t0, g)
+            self._timed("coupling", _couple_surfaces, p, self._targets[id(p)], start, t1 - t0, g)
             if id(p) not in lockstep:
-                p.advance(t0, t1)
+                self._timed(_stage(p), p.advance, t0, t1)
         if self._lockstep:
-            type(self._lockstep[0]).advance_together(self._lockstep, t0, t1, self._lockstep_graphs)
+            self._timed("pbd", type(self._lockstep[0]).advance_together, self._lockstep, t0, t1, self._lockstep_graphs)
         if pushers:
-            impulses: dict[int, np.ndarray] = {}
-            for b in pushers:
-                for key, J in b.moving_surface_impulses().items():
-                    impulses[key] = impulses.get(key, 0.0) + J
-            for b in self._pushed:
-                if id(b) in impulses:
-                    b.add_vertex_impulses(impulses[id(b)], t1 - t0)
+            self._timed("coupling", self._exchange, t1 - t0)
+
+    def _exchange(self, interval: float) -> None:
+        """Hand every pushed body what the pushers pushed it with over the interval just stepped."""
+        impulses: dict[int, np.ndarray] = {}
+        for b in self._pushers:
+            for key, J in b.moving_surface_impulses().items():
+                impulses[key] = impulses.get(key, 0.0) + J
+        for b in self._pushed:
+            if id(b) in impulses:
+                b.add_vertex_impulses(impulses[id(b)], interval)
 
     def _check_frame(self) -> None:
         for body in self.bodies:
@@ -450,6 +469,11 @@ def _automatic_coupling_steps(bodies: Sequence[Body], frame_dt: float) -> int:
     want = math.ceil(frame_dt / EOL_COUPLING_DT - 1e-9)
     fits = [k for k in range(1, max([want] + steps) + 1) if all(n % k == 0 for n in steps)]
     return min([k for k in fits if k >= want] or [max(fits)])
+
+
+def _stage(body: Body) -> str:
+    """The ``World.timings`` stage of a body's own stepping: its method."""
+    return {"BemBody": "bem", "EolBody": "eol", "PbdBody": "pbd"}.get(type(body).__name__, "other")
 
 
 def _couples(body: Body) -> bool:
