@@ -9,7 +9,7 @@ into a 0.6 x 0.6 m bin (a ground plane and four static wall meshes) and settle i
 pair meets through the World's explicit coupling between EoL bodies (the lighter of two keeps
 itself out of the other's surface with its contact rows, Eqs. 27-29, every 1 ms interval; the
 other is handed the opposite impulse); the walls and ground are the paper's frictionless
-colliders. ``resolution`` (cells across each body) is the knob: 8 here so a CPU runs it in
+colliders. ``resolution`` (cells across each body) is the knob: 6 here so a CPU runs it in
 minutes; the paper's Table II uses 32 (``build(resolution=32)``, a GPU's job).
 """
 
@@ -24,7 +24,7 @@ from wsim import mesh as wmesh
 
 FRAMES = 45
 FPS = 30
-RESOLUTION = 8
+RESOLUTION = 6
 BIN = 0.6  # inner width of the bin [m]
 
 

@@ -338,11 +338,11 @@ def test_eol_spheres_collide_head_on():
     """Two EoL spheres (6 cells across) thrown at each other at 1 m/s in zero gravity, the second
     10x denser. The lighter one keeps itself out of the heavier one's surface and hands it the
     opposite impulse: exactly equal and opposite; the pair's momentum is kept to 2 % of the sum of
-    the two momenta (measured 0.4 %: EoL's own advection is not exactly conservative); they part
-    with the velocities of a partly elastic collision (between the perfectly inelastic and the
-    elastic outcomes, measured about halfway), kinetic energy does not grow, and no surface vertex
-    goes deeper than one cell into the other (measured 0.2 cells, at the instant they part: the
-    contact faces spring back)."""
+    the two momenta (measured 0.25 %: EoL's own advection is not exactly conservative); they part
+    with the velocities of a partly elastic collision (the light one at -1.66 m/s, between the
+    perfectly inelastic -0.82 and the elastic -2.64), kinetic energy does not grow (76 % kept), and
+    no surface vertex goes deeper than one cell into the other (measured 0.25 cells, at the
+    instant they part: the squashed contact faces spring back)."""
     w = wsim.World(fps=60, gravity=(0.0, 0.0, 0.0), device="cpu")
     heavy = wsim.ElasticMaterial(E=1e5, nu=0.3, rho=5000.0)
     a = w.add(wsim.EolBody(EOL_BALL, EOL_MAT, resolution=6, name="light", position=(-0.2, 0.0, 0.0),
@@ -373,8 +373,9 @@ def test_eol_spheres_collide_head_on():
 def test_eol_box_rests_on_an_eol_box():
     """An EoL box set on another on the (frictionless) ground rests there for 2 s: its bottom
     stays put (sinks less than 2 mm over the last second) and neither box jitters (mean speed
-    under 1 cm/s over the last second); the lower box carries the upper one's weight (its push
-    from the upper box is m g t to 3 %)."""
+    under 5 mm/s over the last second; measured 1.3 mm/s: the coupling's lag rings the boxes a
+    little, 99 mm/s with frame-long intervals, ``tools/study_coupling.py``); the lower box carries
+    the upper one's weight (its push from the upper box is m g t to 3 %)."""
     w = wsim.World(fps=30, device="cpu")
     w.add_collider(wsim.GroundPlane(name="ground"))
     mat = wsim.ElasticMaterial(E=2e5, nu=0.3, rho=500.0)
@@ -388,22 +389,29 @@ def test_eol_box_rests_on_an_eol_box():
             bottom.append(top.points()[:, 1].min())
             speeds.append([np.linalg.norm(b.linear_momentum()) / b.mass for b in (low, top)])
     assert bottom[0] - min(bottom) < 0.002 and bottom[-1] > 0.195
-    assert np.mean(speeds) < 0.01
+    assert np.mean(speeds) < 0.005
     assert -low.coupling_impulse[1] == pytest.approx(top.mass * G * w.time, rel=0.03)
+
+
+def _slab_world(mu: float):
+    """A World (60 fps) with a frictionless ground and a heavy EoL slab (0.8 x 0.1 x 0.3 m, top at
+    y = 0.1005 m) of friction mu on it."""
+    w = wsim.World(fps=60, device="cpu")
+    w.add_collider(wsim.GroundPlane(name="ground"))
+    slab = trimesh.creation.box(extents=(0.8, 0.1, 0.3)).subdivide().subdivide()
+    base = w.add(wsim.EolBody(slab, wsim.ElasticMaterial(E=5e5, nu=0.3, rho=2000.0), resolution=12, name="slab",
+                              position=(0.2, 0.0505, 0), damping=100.0, friction=mu))
+    return w, base
 
 
 def test_eol_box_slides_to_a_stop_on_an_eol_slab():
     """An EoL box launched at 1 m/s across the flat top of a heavy EoL slab (friction 0.4 on both)
-    stops within 15 % of the Coulomb distance v^2 / (2 mu g), measured relative to the slab (which
-    the friction pushes along the frictionless ground); the tangential impulse it took is mu times
-    the normal one while it slid (to 0.1 %, measured 0.01 %: the friction is taken at the QP's dt
+    stops within 15 % of the Coulomb distance v^2 / (2 mu g) (measured 0.1251 m against 0.1274 m),
+    relative to the slab (which the friction pushes along the frictionless ground); the tangential
+    impulse it took is mu times the normal one while it slid (to 0.1 %, measured 0.01 %: the friction is taken at the QP's dt
     guess, the normal impulse at the step's final dt where a step is shortened)."""
-    w = wsim.World(fps=60, device="cpu")
-    w.add_collider(wsim.GroundPlane(name="ground"))
-    slab = trimesh.creation.box(extents=(0.8, 0.1, 0.3)).subdivide().subdivide()
     mu = 0.4
-    base = w.add(wsim.EolBody(slab, wsim.ElasticMaterial(E=5e5, nu=0.3, rho=2000.0), resolution=12, name="slab",
-                              position=(0.2, 0.0505, 0), damping=100.0, friction=mu))
+    w, base = _slab_world(mu)
     box = trimesh.creation.box(extents=(0.1, 0.1, 0.1)).subdivide()
     cube = w.add(wsim.EolBody(box, wsim.ElasticMaterial(E=2e5, nu=0.3, rho=500.0), resolution=4, name="box",
                               position=(-0.1, 0.1505, 0), velocity=(1.0, 0.0, 0.0), damping=50.0, friction=mu))
@@ -422,8 +430,10 @@ def test_eol_box_slides_to_a_stop_on_an_eol_slab():
 def test_eol_ball_and_bem_cube_collide(box_ops):
     """An EoL ball and a BEM cube thrown at each other in zero gravity: the EoL body pushes, the
     cube (4x heavier) is handed the opposite impulse (exactly); the pair's momentum is kept to 2 %
-    of the sum of the two momenta; they part, and no vertex goes deeper than one EoL cell into the
-    other."""
+    of the sum of the two momenta (measured 0.67 %: the cube's momentum changes by the handed
+    impulse to 1.2 %, BEM's error correction, see the PBD-BEM test); they part (ball -1.74 m/s,
+    cube -0.30 m/s: between the inelastic -0.60 and the elastic -2.19 / -0.20), and no vertex goes
+    deeper than one EoL cell into the other (measured 0.1 cells)."""
     w = wsim.World(fps=1.0 / (5 * DT), gravity=(0.0, 0.0, 0.0), device="cpu")
     cube = w.add(wsim.BemBody(BOX, MAT, DT, operators=box_ops, name="cube", position=(0.2, 0.02, 0.0),
                               velocity=(-1.0, 0.0, 0.0)))
@@ -442,3 +452,42 @@ def test_eol_ball_and_bem_cube_collide(box_ops):
     v_ball, v_cube = ball.linear_momentum()[0] / ball.mass, cube.linear_momentum()[0] / cube.mass
     assert v_ball < v_cube < -0.2  # they part; the heavier cube only slows down
     assert depth < ball.grid.h
+
+
+def test_eol_box_rests_on_a_bem_cube_on_the_ground(box_ops):
+    """An EoL box set on a BEM cube resting on the ground stays there for 2 s: its bottom stays
+    put (moves less than 1 mm over the last second), neither body jitters (speeds under 1 mm/s
+    over the last second), and the cube is handed the box's weight, m g t to 0.1 %."""
+    w = wsim.World(fps=1.0 / (5 * DT), device="cpu")
+    w.add_collider(wsim.GroundPlane(0.0, friction=0.5))
+    cube = w.add(wsim.BemBody(BOX, MAT, DT, operators=box_ops, name="cube", position=(0.0, 0.1005, 0.0), friction=0.5))
+    top = w.add(wsim.EolBody(trimesh.creation.box(extents=(0.15, 0.1, 0.15)).subdivide().subdivide(),
+                             wsim.ElasticMaterial(E=2e5, nu=0.3, rho=500.0), resolution=5, name="top",
+                             position=(0.01, 0.2515, 0.0), damping=50.0, friction=0.5))
+    bottom, speeds = [], []
+    for f in range(200):
+        w.step()
+        if f >= 100:
+            bottom.append(top.points()[:, 1].min())
+            speeds.append(max(np.linalg.norm(top.linear_momentum()) / top.mass,
+                              np.linalg.norm(cube.linear_momentum()) / cube.mass))
+    assert np.ptp(bottom) < 0.001 and min(bottom) > 0.199
+    assert max(speeds) < 0.001
+    assert -cube.coupling_impulse[1] == pytest.approx(top.mass * G * w.time, rel=1e-3)
+
+
+def test_pbd_box_slides_to_a_stop_on_an_eol_slab():
+    """A PBD box launched at 1 m/s across the flat top of a heavy EoL slab (friction 0.5: the PBD
+    default, the slab's is the same) stops within 15 % of the Coulomb distance v^2 / (2 mu g)
+    (measured 0.098 m against 0.102 m), relative to the slab."""
+    mu = 0.5
+    w, base = _slab_world(mu)
+    box = w.add(wsim.PbdBody(trimesh.creation.box(extents=(0.1, 0.1, 0.1)).subdivide(), PBD_DENSE, tets="auto",
+                             name="box", position=(-0.1, 0.1505, 0), velocity=(1.0, 0.0, 0.0)))
+    x0 = box.center_of_mass()[0] - base.points()[:, 0].mean()
+    for _ in range(30):
+        w.step()
+    x1 = box.center_of_mass()[0] - base.points()[:, 0].mean()
+    rel_v = box.linear_momentum()[0] / box.masses.sum() - base.linear_momentum()[0] / base.mass
+    assert abs(rel_v) < 0.02
+    assert x1 - x0 == pytest.approx(1.0 / (2 * mu * G), rel=0.15)

@@ -11,7 +11,17 @@ one per interval, whichever is more), one JSON line per run:
 * ``rest``: a PBD ball dropped 4 cm onto a BEM cube on the ground, 1 s: the ball's depth in the
   cube at the end [mm], its largest speed in the last 0.25 s [m/s], wall time per frame.
 
-    python tools/study_coupling.py [--device cuda:0] [--out tools/results/study_coupling_cpu.jsonl]
+Between EoL bodies (the lighter pushes), at 1, 4, 16 and 64 intervals per frame (60 fps):
+
+* ``eol_throw``: two EoL spheres (R = 0.15 m, 6 cells, the second 10x denser) thrown at each
+  other at 1 m/s in zero gravity, 0.4 s: the light one's velocity after (perfectly inelastic
+  -0.82 m/s, elastic -2.64 m/s), kinetic energy kept, the pair's momentum error [% of the sum of
+  the momenta], the deepest vertex [cells].
+* ``eol_rest``: an EoL box set on an EoL box on the ground, 2 s: the mean speed of the two over the
+  last second [m/s] (jitter) and how far the top box's bottom moved over it [mm].
+
+    python tools/study_coupling.py [--device cuda:0] [--cases throw,rest,eol_throw,eol_rest]
+        [--out tools/results/study_coupling_cpu.jsonl]
 """
 
 from __future__ import annotations
@@ -81,17 +91,61 @@ def run(case: str, k: int, device: str, ops) -> dict:
     return out
 
 
+def run_eol(case: str, k: int, device: str) -> dict:
+    fps = 60.0
+    dev = wp.get_device(device)
+    if case == "eol_throw":
+        w = wsim.World(fps=fps, gravity=(0.0, 0.0, 0.0), device=device, coupling_dt=1.0 / (fps * k))
+        ball = trimesh.creation.icosphere(subdivisions=2, radius=0.15)
+        a = w.add(wsim.EolBody(ball, wsim.ElasticMaterial(E=1e5, nu=0.3, rho=500.0), resolution=6, name="light",
+                               position=(-0.2, 0.0, 0.0), velocity=(1.0, 0.0, 0.0), damping=50.0))
+        b = w.add(wsim.EolBody(ball, wsim.ElasticMaterial(E=1e5, nu=0.3, rho=5000.0), resolution=6, name="heavy",
+                               position=(0.2, 0.02, 0.0), velocity=(-1.0, 0.0, 0.0), damping=50.0))
+        P0 = a.linear_momentum() + b.linear_momentum()
+        scale = np.linalg.norm(a.linear_momentum()) + np.linalg.norm(b.linear_momentum())
+        E0 = a.kinetic_energy() + b.kinetic_energy()
+        deepest = 0.0
+        t = time.perf_counter()
+        for _ in range(24):
+            w.step()
+            deepest = max(deepest, depth(a, b, dev), depth(b, a, dev))
+        wall = (time.perf_counter() - t) / 24
+        P = a.linear_momentum() + b.linear_momentum()
+        return dict(case=case, device=dev.name, intervals_per_frame=k, coupling_dt=1.0 / (fps * k), ms_per_frame=1e3 * wall,
+                    light_vx=float(a.linear_momentum()[0] / a.mass), heavy_vx=float(b.linear_momentum()[0] / b.mass),
+                    kinetic_energy_kept=float((a.kinetic_energy() + b.kinetic_energy()) / E0),
+                    momentum_error_pct=float(100.0 * np.linalg.norm(P - P0) / scale), deepest_cells=deepest / a.grid.h)
+    w = wsim.World(fps=fps, device=device, coupling_dt=1.0 / (fps * k))
+    w.add_collider(wsim.GroundPlane(name="ground"))
+    mat = wsim.ElasticMaterial(E=2e5, nu=0.3, rho=500.0)
+    box = trimesh.creation.box(extents=(0.3, 0.2, 0.3)).subdivide().subdivide()
+    low = w.add(wsim.EolBody(box, mat, resolution=5, name="low", position=(0, 0.101, 0), damping=100.0))
+    top = w.add(wsim.EolBody(box, mat, resolution=5, name="top", position=(0.03, 0.305, 0), damping=100.0))
+    bottom, speeds = [], []
+    t = time.perf_counter()
+    for f in range(120):
+        w.step()
+        if f >= 60:
+            bottom.append(top.points()[:, 1].min())
+            speeds.append(np.mean([np.linalg.norm(x.linear_momentum()) / x.mass for x in (low, top)]))
+    wall = (time.perf_counter() - t) / 120
+    return dict(case=case, device=dev.name, intervals_per_frame=k, coupling_dt=1.0 / (fps * k), ms_per_frame=1e3 * wall,
+                mean_speed=float(np.mean(speeds)), bottom_moved_mm=1e3 * float(np.ptp(bottom)))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", default=None)
+    ap.add_argument("--cases", default="throw,rest,eol_throw,eol_rest")
     args = ap.parse_args()
     from wsim.bem import build_operators
 
-    ops = build_operators(BOX, MAT, DT, cache=False, device=args.device)
-    for case in ("throw", "rest"):
-        for k in (1, 2, 4, 8, 16, 32):
-            line = json.dumps(run(case, k, args.device, ops))
+    cases = args.cases.split(",")
+    ops = build_operators(BOX, MAT, DT, cache=False, device=args.device) if {"throw", "rest"} & set(cases) else None
+    for case in cases:
+        for k in ((1, 4, 16, 64) if case.startswith("eol") else (1, 2, 4, 8, 16, 32)):
+            line = json.dumps(run_eol(case, k, args.device) if case.startswith("eol") else run(case, k, args.device, ops))
             print(line, flush=True)
             if args.out:
                 with open(args.out, "a") as fh:
