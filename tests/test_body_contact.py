@@ -370,6 +370,37 @@ def test_eol_spheres_collide_head_on():
     assert depth < a.grid.h
 
 
+def test_eol_pair_checkpoint_in_mid_contact_resumes_bit_for_bit(tmp_path):
+    """Two EoL spheres saved in mid-contact (the heavier holding a push still to deliver, the
+    lighter with contact rows against it) and restored into a fresh World continue bit for bit on
+    the CPU: everything the exchange carries from one interval to the next is state."""
+    def world():
+        w = wsim.World(fps=60, gravity=(0.0, 0.0, 0.0), device="cpu", coupling_dt=1.0 / 240.0)
+        w.add(wsim.EolBody(EOL_BALL, EOL_MAT, resolution=5, name="a", position=(-0.17, 0.0, 0.0),
+                           velocity=(1.0, 0.0, 0.0), damping=50.0))
+        w.add(wsim.EolBody(EOL_BALL, wsim.ElasticMaterial(E=1e5, nu=0.3, rho=1000.0), resolution=5, name="b",
+                           position=(0.17, 0.02, 0.0), velocity=(-1.0, 0.0, 0.0), damping=50.0))
+        return w
+
+    n = 3
+    straight = world()
+    for _ in range(2 * n):
+        straight.step()
+    first = world()
+    for _ in range(n):
+        first.step()
+    heavy = first.bodies[1]
+    assert heavy.state.coupling_until > first.time and np.abs(heavy.state.coupling_force).max() > 0.0
+    path = first.checkpoint(tmp_path / "mid.h5")
+    resumed = world()
+    resumed.restore(path)
+    for _ in range(n):
+        resumed.step()
+    for a, b in zip(straight.bodies, resumed.bodies):
+        assert np.array_equal(a.points(), b.points()), a.name
+    assert np.array_equal(straight.bodies[1].coupling_impulse, resumed.bodies[1].coupling_impulse)
+
+
 def test_eol_box_rests_on_an_eol_box():
     """An EoL box set on another on the (frictionless) ground rests there for 2 s: its bottom
     stays put (sinks less than 2 mm over the last second) and neither box jitters (mean speed
