@@ -334,7 +334,7 @@ EOL_MAT = wsim.ElasticMaterial(E=1e5, nu=0.3, rho=500.0)
 EOL_BALL = trimesh.creation.icosphere(subdivisions=2, radius=0.15)
 
 
-def test_eol_spheres_collide_head_on():
+def test_eol_spheres_collide_head_on(device):
     """Two EoL spheres (6 cells across) thrown at each other at 1 m/s in zero gravity, the second
     10x denser. The lighter one keeps itself out of the heavier one's surface and hands it the
     opposite impulse: exactly equal and opposite; the pair's momentum is kept to 2 % of the sum of
@@ -343,7 +343,7 @@ def test_eol_spheres_collide_head_on():
     perfectly inelastic -0.82 and the elastic -2.64), kinetic energy does not grow (76 % kept), and
     no surface vertex goes deeper than one cell into the other (measured 0.25 cells, at the
     instant they part: the squashed contact faces spring back)."""
-    w = wsim.World(fps=60, gravity=(0.0, 0.0, 0.0), device="cpu")
+    w = wsim.World(fps=60, gravity=(0.0, 0.0, 0.0), device=device)
     heavy = wsim.ElasticMaterial(E=1e5, nu=0.3, rho=5000.0)
     a = w.add(wsim.EolBody(EOL_BALL, EOL_MAT, resolution=6, name="light", position=(-0.2, 0.0, 0.0),
                            velocity=(1.0, 0.0, 0.0), damping=50.0))
@@ -424,10 +424,10 @@ def test_eol_box_rests_on_an_eol_box():
     assert -low.coupling_impulse[1] == pytest.approx(top.mass * G * w.time, rel=0.03)
 
 
-def _slab_world(mu: float):
+def _slab_world(mu: float, device: str):
     """A World (60 fps) with a frictionless ground and a heavy EoL slab (0.8 x 0.1 x 0.3 m, top at
     y = 0.1005 m) of friction mu on it."""
-    w = wsim.World(fps=60, device="cpu")
+    w = wsim.World(fps=60, device=device)
     w.add_collider(wsim.GroundPlane(name="ground"))
     slab = trimesh.creation.box(extents=(0.8, 0.1, 0.3)).subdivide().subdivide()
     base = w.add(wsim.EolBody(slab, wsim.ElasticMaterial(E=5e5, nu=0.3, rho=2000.0), resolution=12, name="slab",
@@ -435,14 +435,14 @@ def _slab_world(mu: float):
     return w, base
 
 
-def test_eol_box_slides_to_a_stop_on_an_eol_slab():
+def test_eol_box_slides_to_a_stop_on_an_eol_slab(device):
     """An EoL box launched at 1 m/s across the flat top of a heavy EoL slab (friction 0.4 on both)
     stops within 15 % of the Coulomb distance v^2 / (2 mu g) (measured 0.1251 m against 0.1274 m),
     relative to the slab (which the friction pushes along the frictionless ground); the tangential
     impulse it took is mu times the normal one while it slid (to 0.1 %, measured 0.01 %: the friction is taken at the QP's dt
     guess, the normal impulse at the step's final dt where a step is shortened)."""
     mu = 0.4
-    w, base = _slab_world(mu)
+    w, base = _slab_world(mu, device)
     box = trimesh.creation.box(extents=(0.1, 0.1, 0.1)).subdivide()
     cube = w.add(wsim.EolBody(box, wsim.ElasticMaterial(E=2e5, nu=0.3, rho=500.0), resolution=4, name="box",
                               position=(-0.1, 0.1505, 0), velocity=(1.0, 0.0, 0.0), damping=50.0, friction=mu))
@@ -458,14 +458,14 @@ def test_eol_box_slides_to_a_stop_on_an_eol_slab():
     assert x1 - x0 == pytest.approx(1.0 / (2 * mu * G), rel=0.15)
 
 
-def test_eol_ball_and_bem_cube_collide(box_ops):
+def test_eol_ball_and_bem_cube_collide(box_ops, device):
     """An EoL ball and a BEM cube thrown at each other in zero gravity: the EoL body pushes, the
     cube (4x heavier) is handed the opposite impulse (exactly); the pair's momentum is kept to 2 %
     of the sum of the two momenta (measured 0.67 %: the cube's momentum changes by the handed
     impulse to 1.2 %, BEM's error correction, see the PBD-BEM test); they part (ball -1.74 m/s,
     cube -0.30 m/s: between the inelastic -0.60 and the elastic -2.19 / -0.20), and no vertex goes
     deeper than one EoL cell into the other (measured 0.1 cells)."""
-    w = wsim.World(fps=1.0 / (5 * DT), gravity=(0.0, 0.0, 0.0), device="cpu")
+    w = wsim.World(fps=1.0 / (5 * DT), gravity=(0.0, 0.0, 0.0), device=device)
     cube = w.add(wsim.BemBody(BOX, MAT, DT, operators=box_ops, name="cube", position=(0.2, 0.02, 0.0),
                               velocity=(-1.0, 0.0, 0.0)))
     ball = w.add(wsim.EolBody(trimesh.creation.icosphere(subdivisions=2, radius=0.1), EOL_MAT, resolution=5,
@@ -507,12 +507,12 @@ def test_eol_box_rests_on_a_bem_cube_on_the_ground(box_ops):
     assert -cube.coupling_impulse[1] == pytest.approx(top.mass * G * w.time, rel=1e-3)
 
 
-def test_pbd_box_slides_to_a_stop_on_an_eol_slab():
+def test_pbd_box_slides_to_a_stop_on_an_eol_slab(device):
     """A PBD box launched at 1 m/s across the flat top of a heavy EoL slab (friction 0.5: the PBD
     default, the slab's is the same) stops within 15 % of the Coulomb distance v^2 / (2 mu g)
     (measured 0.098 m against 0.102 m), relative to the slab."""
     mu = 0.5
-    w, base = _slab_world(mu)
+    w, base = _slab_world(mu, device)
     box = w.add(wsim.PbdBody(trimesh.creation.box(extents=(0.1, 0.1, 0.1)).subdivide(), PBD_DENSE, tets="auto",
                              name="box", position=(-0.1, 0.1505, 0), velocity=(1.0, 0.0, 0.0)))
     x0 = box.center_of_mass()[0] - base.points()[:, 0].mean()
