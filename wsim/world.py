@@ -436,11 +436,10 @@ def _couple_surfaces(pusher: Body, targets: Sequence[Body], start: dict[int, np.
 
 
 def _max_speed(body: Body) -> float:
-    """The fastest point of a body [m/s] (a PBD particle, an EoL grid node with material)."""
-    if hasattr(body, "velocities"):
-        return float(np.abs(body.velocities()).max(initial=0.0))
-    v = body.node_world_velocities()[body.node_masses() > 0.0]
-    return float(np.linalg.norm(v, axis=1).max(initial=0.0))
+    """A bound on the speed of a body's points [m/s] (its ``max_speed``, or its fastest particle)."""
+    if hasattr(body, "max_speed"):
+        return body.max_speed()
+    return float(np.linalg.norm(body.velocities(), axis=1).max(initial=0.0))
 
 
 def _automatic_coupling_steps(bodies: Sequence[Body], frame_dt: float) -> int:

@@ -435,6 +435,24 @@ class EolBody(VertexImpulses, Body):
         w = y @ L.T + c + self.eulerian_velocity() @ self._F_L().T
         return w @ self._axes().T
 
+    def max_speed(self) -> float:
+        """A cheap upper bound on the speed of the body's material [m/s], for broad phases: the
+        Lagrangian field at the grid's farthest corner plus the last step's largest Eulerian
+        velocity, |x_dot| <= |axes| (|L| r + |c| + |F_L| |v|) (Eq. 2). The last step's v* bounds the
+        advected v up to the step's own change, which the broad phase's margin covers."""
+        self._require_bound()
+        L, c = self._lagrangian_field()
+        g = self.grid
+        corners = g.origin + g.h * np.array([[i, j, k] for i in (0, g.cells[0]) for j in (0, g.cells[1])
+                                             for k in (0, g.cells[2])])
+        r = float(np.linalg.norm(corners, axis=1).max())
+        if self.history and self.lagrangian != "eulerian":  # v_star: per-axis maxima of the last step
+            v = math.sqrt(3.0) * self.history[-1].v_star
+        else:  # before the first step (or all motion on the grid): read the velocities
+            v = float(np.linalg.norm(self.state.v.numpy(), axis=1).max(initial=0.0))
+        return float(np.linalg.norm(self._axes(), 2) * (np.linalg.norm(L, 2) * r + np.linalg.norm(c)
+                                                        + np.linalg.norm(self._F_L(), 2) * v))
+
     def linear_momentum(self) -> np.ndarray:
         """sum_s m_s x_dot_s over the nodes [kg m/s] (world)."""
         return self.node_masses() @ self.node_world_velocities()
@@ -513,18 +531,18 @@ class EolBody(VertexImpulses, Body):
         return self.state.time
 
     def _register_coupling(self) -> None:
-        """The load of ``add_vertex_impulses`` (the World's push from bodies of other methods, issue 18):
-        a traction of force / current vertex area, so the force and its momentum are exact (it
-        counts in ``load_impulse``); registered once, only for bodies that are pushed."""
-        if not self._coupling_load:
-            self._tractions.append(self._coupling_tractions)
-            self._coupling_load = True
+        """The load of ``add_vertex_impulses`` (the World's push from other bodies, issue 18): point
+        forces at the surface vertices (``_apply_loads``), so the force and its momentum are exact
+        (it counts in ``load_impulse``); only bodies that are pushed take it."""
+        self._coupling_load = True
 
-    def _coupling_tractions(self, t: float) -> np.ndarray:
+    def _coupling_forces(self, t: float) -> np.ndarray | None:
+        """The push still being delivered at t [N] per surface vertex (world), or None."""
         st = self.state
-        if t >= st.coupling_until - 1e-9 * max(self.dt_elastic, 1e-12) or not len(st.coupling_force):
-            return np.zeros((self._n_surface, 3))
-        return st.coupling_force / self.vertex_areas()[:, None]
+        if not self._coupling_load or not len(st.coupling_force) \
+                or t >= st.coupling_until - 1e-9 * max(self.dt_elastic, 1e-12):
+            return None
+        return st.coupling_force
 
     @property
     def load_impulse(self) -> np.ndarray:
@@ -568,6 +586,9 @@ class EolBody(VertexImpulses, Body):
             V = self._n_surface
             tr = sum(self._load_value(fn(t), (V, 3), "a traction [Pa]", t) for fn in self._tractions)
             work.append((self.state.y_vertices, self.vertex_areas()[:, None] * tr, 1))
+        push = self._coupling_forces(t)
+        if push is not None:  # forces as they are (no round trip through the vertex areas)
+            work.append((self.state.y_vertices, push, 1))
         if self._point_forces:
             st = self.state
             x = st.y_points.numpy() @ st.F.T + st.T
@@ -930,7 +951,7 @@ class EolBody(VertexImpulses, Body):
                   inputs=[self.state.v, self._mass, self._forces, self._grid, _mat(L), wp.vec3d(*c),
                           _mat(self._F_L()), wp.vec3d(*g_axes), int(self.fictitious and self.lagrangian == "rigid"),
                           _mat(gyro), self._mass_real, self._w, self._a])
-        if self._tractions or self._point_forces:
+        if self._tractions or self._point_forces or self._coupling_load:
             self._apply_loads(st.time)
         if self.damping > 0.0:
             shape = self.grid.node_shape
@@ -1047,7 +1068,7 @@ class EolBody(VertexImpulses, Body):
         self._force_pass()
         self._tick("forces", t)
         st.gravity_impulse = st.gravity_impulse + dt * self._m_total * self._gravity
-        if self._accelerations or self._tractions or self._point_forces:
+        if self._accelerations or self._tractions or self._point_forces or self._coupling_load:
             st.load_impulse = st.load_impulse + dt * (self._m_total * self._body_acc + self._load_force)
         self.history.append(StepRecord(time=st.time, dt=dt, rows=m, active=n_active,
                                        v_star=float(max(vmax[:3].max(), 0.0) + dt * vmax[3:].max()),
