@@ -31,8 +31,8 @@ from wsim.errors import InvalidParameter
 from wsim.usd import UsdWriter, check_up_axis
 
 #: longest coupling interval [s] when EoL bodies push other bodies (``World(coupling_dt=None)``):
-#: the lag of the exchange rings an EoL box resting on another (mean speed 99 mm/s at 1/60 s intervals,
-#: 2.7 at 1/240 s, 1.3 at 1/960 s; ``tools/study_coupling.py``)
+#: the lag of the exchange rings an EoL box resting on another (mean speed 142 mm/s at 1/60 s intervals,
+#: 9.6 at 1/240 s, 4.6 at 1/960 s; ``tools/study_coupling.py``)
 EOL_COUPLING_DT = 1.0e-3
 
 _UP = {"Y": np.array([0.0, 1.0, 0.0]), "Z": np.array([0.0, 0.0, 1.0])}

@@ -81,12 +81,13 @@ class _MovingSurface:
     n_faces: int
     impulse: wp.array
     step_impulse: wp.array
+    velocity: wp.array
     mu: float = 0.0
     reach: float = 0.0
     hits: tuple | None = None
     p0_host: np.ndarray | None = None
     p1_host: np.ndarray | None = None
-    G: np.ndarray | None = None  # the rigid fit of its motion, v = G x + g (world)
+    G: np.ndarray | None = None  # the rigid fit of its motion, v = G x + g (world), for friction
     g: np.ndarray | None = None
     friction: np.ndarray | None = None  # friction impulse this body took from it this step (world)
 
@@ -842,9 +843,10 @@ class EolBody(VertexImpulses, Body):
         out of them as out of a moving collider, each at the velocity of its vertices, and the
         opposite of what the rows push with is collected per vertex (``moving_surface_impulses``)
         for the World to hand to their bodies. Called by the World before each ``advance``; an
-        empty list ends the coupling. The normal contact is the paper's volume constraint, against
-        the rigid motion that best fits the surface's vertices over the interval; Coulomb friction
-        with coefficient ``friction`` acts at the grid nodes it pushes (``kernels.eol_contact.node_friction``)."""
+        empty list ends the coupling. The normal contact is the paper's volume constraint against
+        the surface moving with its vertices; Coulomb friction with coefficient ``friction`` acts at
+        the grid nodes it pushes, relative to the rigid motion that best fits the surface's
+        vertices over the interval (``kernels.eol_contact.node_friction``)."""
         self._require_bound()
         d = self._device
         keep = {ms.key: ms for ms in self._moving}
@@ -859,6 +861,7 @@ class EolBody(VertexImpulses, Body):
                                     mesh=wp.Mesh(points=cur, indices=wp.array(np.ascontiguousarray(faces, dtype=np.int32).ravel(),
                                                                               dtype=wp.int32, device=d)),
                                     n_faces=len(faces), impulse=wp.zeros(len(p0), dtype=wp.vec3d, device=d),
+                                    velocity=wp.zeros(len(p0), dtype=wp.vec3d, device=d),
                                     step_impulse=wp.zeros(len(p0), dtype=wp.vec3d, device=d))
             ms.p0_host, ms.p1_host = p0, np.asarray(p1, dtype=np.float64)
             ms.p0.assign(ms.p0_host)
@@ -892,6 +895,8 @@ class EolBody(VertexImpulses, Body):
         self._span = (self.time, t1)  # where the moving surfaces are: linear over this advance
         for ms in self._moving:
             ms.G, ms.g = rigid_fit(ms.p0_host, ms.p1_host, t1 - self.time)
+            wp.launch(kc.surface_velocity, dim=ms.p0.shape[0], device=self._device,
+                      inputs=[ms.p0, ms.p1, wp.float64(1.0 / max(t1 - self.time, 1e-300)), ms.velocity])
         while self._failure is None and self.time < t1 - eps:
             cap = min(t1 - self.time, self.dt_elastic, self.dt_max or math.inf)
             self._step(cap)
@@ -1152,7 +1157,7 @@ class EolBody(VertexImpulses, Body):
             wp.launch(kc.place_surface, dim=ms.p0.shape[0], device=d, inputs=[ms.p0, ms.p1, wp.float64(f), ms.cur])
             ms.mesh.refit()
             wp.launch(kc.surface_rows, dim=surf.sample_face.shape[0], device=d,
-                      inputs=[surf, ms.mesh.id, _mat(ms.G), wp.vec3d(*ms.g), float(ms.reach), len(self._colliders) + k,
+                      inputs=[surf, ms.mesh.id, ms.velocity, float(ms.reach), len(self._colliders) + k,
                               self._row_acc, self._row_flag, *ms.hits])
 
     def _friction(self, lam: np.ndarray, dt: float) -> None:
