@@ -309,15 +309,20 @@ def test_checkpoint_in_mid_contact_keeps_the_pending_push(box_ops, tmp_path):
                            velocity=(1.0, 0.0, 0.0)))
         return w
 
-    n = 9  # the bodies touch from frame 8 on
+    _resumes_bit_for_bit(world, 9, 0, tmp_path)  # the bodies touch from frame 8 on
+
+
+def _resumes_bit_for_bit(world, n: int, pushed: int, tmp_path) -> None:
+    """``world()`` stepped 2n frames straight equals one saved after n frames (body ``pushed``
+    holding a push still to deliver) and restored into a fresh ``world()``, bit for bit."""
     straight = world()
     for _ in range(2 * n):
         straight.step()
     first = world()
     for _ in range(n):
         first.step()
-    cube = first.bodies[0]
-    assert cube.state.coupling_until > first.time and np.abs(cube.state.coupling_force).max() > 0.0
+    body = first.bodies[pushed]
+    assert body.state.coupling_until > first.time and np.abs(body.state.coupling_force).max() > 0.0
     path = first.checkpoint(tmp_path / "mid.h5")
     resumed = world()
     resumed.restore(path)
@@ -325,7 +330,7 @@ def test_checkpoint_in_mid_contact_keeps_the_pending_push(box_ops, tmp_path):
         resumed.step()
     for a, b in zip(straight.bodies, resumed.bodies):
         assert np.array_equal(a.points(), b.points()), a.name
-    assert np.array_equal(straight.bodies[0].coupling_impulse, resumed.bodies[0].coupling_impulse)
+    assert np.array_equal(straight.bodies[pushed].coupling_impulse, resumed.bodies[pushed].coupling_impulse)
 
 
 # -- EoL bodies against EoL and BEM bodies (explicit coupling, the lighter EoL body pushes) ----------
@@ -381,23 +386,7 @@ def test_eol_pair_checkpoint_in_mid_contact_resumes_bit_for_bit(tmp_path):
                            position=(0.17, 0.02, 0.0), velocity=(-1.0, 0.0, 0.0), damping=50.0))
         return w
 
-    n = 3
-    straight = world()
-    for _ in range(2 * n):
-        straight.step()
-    first = world()
-    for _ in range(n):
-        first.step()
-    heavy = first.bodies[1]
-    assert heavy.state.coupling_until > first.time and np.abs(heavy.state.coupling_force).max() > 0.0
-    path = first.checkpoint(tmp_path / "mid.h5")
-    resumed = world()
-    resumed.restore(path)
-    for _ in range(n):
-        resumed.step()
-    for a, b in zip(straight.bodies, resumed.bodies):
-        assert np.array_equal(a.points(), b.points()), a.name
-    assert np.array_equal(straight.bodies[1].coupling_impulse, resumed.bodies[1].coupling_impulse)
+    _resumes_bit_for_bit(world, 3, 1, tmp_path)
 
 
 def test_eol_box_rests_on_an_eol_box():
