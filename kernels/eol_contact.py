@@ -191,6 +191,38 @@ def mesh_rows(
         add_sample(acc, flag, surf, collider, yp, an, cn, wp.float64(wp.length(closest - p)), G * x + g)
 
 
+@wp.func
+def vec3d_of(p: wp.vec3) -> wp.vec3d:
+    return wp.vec3d(wp.float64(p[0]), wp.float64(p[1]), wp.float64(p[2]))
+
+
+@wp.func
+def applied_point(surf: ContactSurface, yp: wp.vec3d) -> wp.vec3d:
+    """Where a sample's row impulse acts on this body (intermediate coordinates): the centroid of
+    its cell's nodes with the row's weights Phi_s m_s / sum Phi m (``accumulate_row``)."""
+    g = (yp - surf.grid.origin) / surf.grid.h
+    cells = surf.grid.shape - wp.vec3i(1, 1, 1)
+    cell = wp.vec3i()
+    t = wp.vec3d()
+    for d in range(3):
+        gd = wp.clamp(g[d], wp.float64(0.0), wp.float64(cells[d]))
+        cell[d] = wp.min(int(gd), cells[d] - 1)
+        t[d] = gd - wp.float64(cell[d])
+    ny = surf.grid.shape[1]
+    nz = surf.grid.shape[2]
+    pm = wp.float64(0.0)
+    y = wp.vec3d()
+    for c in range(8):
+        node = ((cell[0] + c // 4) * ny + cell[1] + (c // 2) % 2) * nz + cell[2] + c % 2
+        wm = corner_weight(c, t) * surf.mass[node]
+        pm += wm
+        corner = wp.vec3d(wp.float64(cell[0] + c // 4), wp.float64(cell[1] + (c // 2) % 2), wp.float64(cell[2] + c % 2))
+        y += wm * (surf.grid.origin + surf.grid.h * corner)
+    if pm > wp.float64(0.0):
+        return y / pm
+    return yp
+
+
 @wp.kernel
 def surface_velocity(p0: wp.array(dtype=wp.vec3d), p1: wp.array(dtype=wp.vec3d), inv_span: wp.float64,
                      velocity: wp.array(dtype=wp.vec3d)):
@@ -258,12 +290,15 @@ def surface_reaction(
     row_of_slot: wp.array(dtype=wp.int32),
     lam: wp.array(dtype=wp.float64),
     impulse: wp.array(dtype=wp.vec3d),
+    weight: wp.array(dtype=wp.float64),
 ):
     """The partner's share of the contact impulse (Newton's third law): the rows push this body's
     nodes by -J^T lambda, sample s of row r contributing -lambda_r c_s with c_s = (n_A . n_B) n_B
     dGamma (world; its node weights sum to one); the partner receives +lambda_r c_s at the sample's
-    nearest point, spread over that face's vertices by the barycentric weights. ``lam`` is per
-    packed row (this step's lambda_0 + dt lambda_1)."""
+    nearest point (shifted, see below), spread over that face's vertices by barycentric weights.
+    ``weight`` gets each vertex's share |lambda_r c_s| b_k at the nearest point itself (positive:
+    how the friction's reaction is spread). ``lam`` is per packed row (this step's lambda_0 + dt
+    lambda_1)."""
     i = wp.tid()
     slot = hit_row[i]
     if slot < 0:
@@ -275,12 +310,35 @@ def surface_reaction(
     if l == wp.float64(0.0):
         return
     yp, x, an = sample_world(surf, i)
-    n = wp.mesh_eval_face_normal(mesh, hit_face[i])
+    f = hit_face[i]
+    n = wp.mesh_eval_face_normal(mesh, f)
     cn = wp.vec3d(wp.float64(n[0]), wp.float64(n[1]), wp.float64(n[2]))
     J = l * wp.dot(an, cn) * cn
+    # the rows push this body's nodes at their mass-weighted centroid, not at the sample: the
+    # partner takes J at its nearest point shifted along its face by the same offset (barycentric
+    # weights of the shifted point, negative outside the face), so the pair's angular momentum
+    # is kept (about any point: J and the offset's normal part are parallel)
+    d = surf.F * (applied_point(surf, yp) - yp)
+    d = d - wp.dot(d, cn) * cn
+    v0 = vec3d_of(wp.mesh_eval_position(mesh, f, 1.0, 0.0))
+    v1 = vec3d_of(wp.mesh_eval_position(mesh, f, 0.0, 1.0))
+    v2 = vec3d_of(wp.mesh_eval_position(mesh, f, 0.0, 0.0))
     b = hit_bary[i]
     for k in range(3):
-        wp.atomic_add(impulse, wp.mesh_get_index(mesh, 3 * hit_face[i] + k), b[k] * J)
+        wp.atomic_add(weight, wp.mesh_get_index(mesh, 3 * f + k), b[k] * wp.length(J))
+    q = b[0] * v0 + b[1] * v1 + b[2] * v2 + d - v0
+    e0 = v1 - v0
+    e1 = v2 - v0
+    d00 = wp.dot(e0, e0)
+    d01 = wp.dot(e0, e1)
+    d11 = wp.dot(e1, e1)
+    det = d00 * d11 - d01 * d01
+    if det > wp.float64(0.0):
+        b1 = (d11 * wp.dot(q, e0) - d01 * wp.dot(q, e1)) / det
+        b2 = (d00 * wp.dot(q, e1) - d01 * wp.dot(q, e0)) / det
+        b = wp.vec3d(wp.float64(1.0) - b1 - b2, b1, b2)
+    for k in range(3):
+        wp.atomic_add(impulse, wp.mesh_get_index(mesh, 3 * f + k), b[k] * J)
 
 
 @wp.kernel
@@ -504,8 +562,9 @@ def node_friction(
     u_t, the tangential part of u - v_B (u = w0 + dt w1 the node's velocity after the normal
     contact, v_B = G x + g the surface's), the slip changes by -u_t min(1, mu dv_n / |u_t|):
     stopped if the push can, else reduced by mu times it (kinetic friction). Applied to w0 (the
-    dt-independent part); the momentum it takes, sum m dv_t, is added to ``impulse`` (velocity
-    axes) for the surface's body."""
+    dt-independent part); the momentum it takes, sum m dv_t, is added to ``impulse[0]`` (velocity
+    axes) and its moment about the world origin, sum x_s x m dv_t, to ``impulse[1]`` (world), for
+    the surface's body."""
     s = wp.tid()
     p = push[s]
     pn = wp.length(p)
@@ -521,3 +580,4 @@ def node_friction(
     d = -slip * wp.min(wp.float64(1.0), mu * pn / st)
     w0[s] = w0[s] + d
     wp.atomic_add(impulse, 0, mass[s] * d)
+    wp.atomic_add(impulse, 1, wp.cross(x, wp.transpose(surf.to_axes) * (mass[s] * d)))

@@ -374,6 +374,25 @@ def test_eol_spheres_collide_head_on(device):
     assert depth < a.grid.h
 
 
+def test_eol_spheres_glancing_blow_keeps_angular_momentum():
+    """Two equal EoL spheres (6 cells) thrown at each other 8 cm off centre, friction 0.5: the
+    pair's angular momentum about the origin is kept to 2 % (measured 0.5 %). The pusher's
+    impulse acts at its grid nodes, so the partner takes the normal part at its surface point
+    shifted by the same offset and the friction with its moment about the nodes (without: -2.6 %,
+    and +5.1 % frictionless, found by an independent check; frictionless now +2.0 %)."""
+    w = wsim.World(fps=60, gravity=(0.0, 0.0, 0.0), device="cpu")
+    a = w.add(wsim.EolBody(EOL_BALL, EOL_MAT, resolution=6, name="a", position=(-0.2, -0.04, 0.0),
+                           velocity=(1.0, 0.0, 0.0), damping=50.0))
+    b = w.add(wsim.EolBody(EOL_BALL, EOL_MAT, resolution=6, name="b", position=(0.2, 0.04, 0.0),
+                           velocity=(-1.0, 0.0, 0.0), damping=50.0))
+    L0 = a.angular_momentum(about=(0, 0, 0)) + b.angular_momentum(about=(0, 0, 0))
+    for _ in range(30):
+        w.step()
+    L = a.angular_momentum(about=(0, 0, 0)) + b.angular_momentum(about=(0, 0, 0))
+    assert np.linalg.norm(b.contact_impulse) > 0.5 * b.mass  # they met
+    assert np.linalg.norm(L - L0) < 0.02 * np.linalg.norm(L0)
+
+
 def test_eol_pair_checkpoint_in_mid_contact_resumes_bit_for_bit(tmp_path):
     """Two EoL spheres saved in mid-contact (the heavier holding a push still to deliver, the
     lighter with contact rows against it) and restored into a fresh World continue bit for bit on
@@ -392,7 +411,7 @@ def test_eol_pair_checkpoint_in_mid_contact_resumes_bit_for_bit(tmp_path):
 def test_eol_box_rests_on_an_eol_box():
     """An EoL box set on another on the (frictionless) ground rests there for 2 s: its bottom
     stays put (sinks less than 2 mm over the last second) and neither box jitters (mean speed
-    under 5 mm/s over the last second; measured 3.1 mm/s: the coupling's lag rings the boxes a
+    under 5 mm/s over the last second; measured 2.8 mm/s: the coupling's lag rings the boxes a
     little, 142 mm/s with frame-long intervals, ``tools/study_coupling.py``); the lower box
     carries the upper one's weight (its push from the upper box is m g t to 3 %; measured 0.04 %)."""
     w = wsim.World(fps=30, device="cpu")
@@ -426,7 +445,7 @@ def _slab_world(mu: float, device: str):
 
 def test_eol_box_slides_to_a_stop_on_an_eol_slab(device):
     """An EoL box launched at 1 m/s across the flat top of a heavy EoL slab (friction 0.4 on both)
-    stops within 15 % of the Coulomb distance v^2 / (2 mu g) (measured 0.1261 m against 0.1274 m),
+    stops within 15 % of the Coulomb distance v^2 / (2 mu g) (measured 0.1260 m against 0.1274 m),
     relative to the slab (which the friction pushes along the frictionless ground); the tangential
     impulse it took is mu times the normal one while it slid (to 0.1 %, measured 0.01 %: the friction is taken at the QP's dt
     guess, the normal impulse at the step's final dt where a step is shortened)."""
@@ -450,8 +469,8 @@ def test_eol_box_slides_to_a_stop_on_an_eol_slab(device):
 def test_eol_ball_and_bem_cube_collide(box_ops, device):
     """An EoL ball and a BEM cube thrown at each other in zero gravity: the EoL body pushes, the
     cube (4x heavier) is handed the opposite impulse (exactly); the pair's momentum is kept to 2 %
-    of the sum of the two momenta (measured 0.72 %: the cube's momentum changes by the handed
-    impulse to 1.2 %, BEM's error correction, see the PBD-BEM test); they part (ball -1.74 m/s,
+    of the sum of the two momenta (measured 0.67 %: the cube's momentum changes by the handed
+    impulse to 1.1 %, BEM's error correction, see the PBD-BEM test); they part (ball -1.74 m/s,
     cube -0.30 m/s: between the inelastic -0.60 and the elastic -2.19 / -0.20), and no vertex goes
     deeper than one EoL cell into the other (measured 0.1 cell)."""
     w = wsim.World(fps=1.0 / (5 * DT), gravity=(0.0, 0.0, 0.0), device=device)
@@ -478,7 +497,7 @@ def test_eol_box_rests_on_a_bem_cube_on_the_ground(box_ops):
     """An EoL box set on a BEM cube resting on the ground stays there for 2 s: its bottom stays
     put (moves less than 1 mm over the last second), neither body jitters (speeds under 1 mm/s
     over the last second), and the cube is handed the box's weight, m g t to 0.1 % (measured: still
-    to 1 um, 0.06 mm/s, 1e-5)."""
+    to 1 um, 0.09 mm/s, 1e-5)."""
     w = wsim.World(fps=1.0 / (5 * DT), device="cpu")
     w.add_collider(wsim.GroundPlane(0.0, friction=0.5))
     cube = w.add(wsim.BemBody(BOX, MAT, DT, operators=box_ops, name="cube", position=(0.0, 0.1005, 0.0), friction=0.5))

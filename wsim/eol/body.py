@@ -81,6 +81,7 @@ class _MovingSurface:
     n_faces: int
     impulse: wp.array
     step_impulse: wp.array
+    step_weight: wp.array
     velocity: wp.array
     mu: float = 0.0
     reach: float = 0.0
@@ -90,6 +91,7 @@ class _MovingSurface:
     G: np.ndarray | None = None  # the rigid fit of its motion, v = G x + g (world), for friction
     g: np.ndarray | None = None
     friction: np.ndarray | None = None  # friction impulse this body took from it this step (world)
+    friction_moment: np.ndarray | None = None  # its moment about the world origin
 
 
 @dataclass(frozen=True)
@@ -680,6 +682,7 @@ class EolBody(VertexImpulses, Body):
         self._surface = None  # contact samples and rows, made once the body can touch something
         self._moving: list[_MovingSurface] = []  # other bodies' surfaces in reach this advance
         self._span = (0.0, 1.0)
+        self._fraction = 0.0  # where in the span the moving surfaces were placed this step
         self._force_pass()
         if self._velocity_field is not None:
             self._set_velocity_field()
@@ -862,7 +865,8 @@ class EolBody(VertexImpulses, Body):
                                                                               dtype=wp.int32, device=d)),
                                     n_faces=len(faces), impulse=wp.zeros(len(p0), dtype=wp.vec3d, device=d),
                                     velocity=wp.zeros(len(p0), dtype=wp.vec3d, device=d),
-                                    step_impulse=wp.zeros(len(p0), dtype=wp.vec3d, device=d))
+                                    step_impulse=wp.zeros(len(p0), dtype=wp.vec3d, device=d),
+                                    step_weight=wp.zeros(len(p0), dtype=wp.float64, device=d))
             ms.p0_host, ms.p1_host = p0, np.asarray(p1, dtype=np.float64)
             ms.p0.assign(ms.p0_host)
             ms.p1.assign(ms.p1_host)
@@ -1152,7 +1156,7 @@ class EolBody(VertexImpulses, Body):
                                   _mat(M[:3, :3]), float(col.extent), _mat(G), wp.vec3d(*g), ci,
                                   self._row_acc, self._row_flag])
         t0, t1 = self._span
-        f = min(max((self.state.time - t0) / max(t1 - t0, 1e-300), 0.0), 1.0)
+        f = self._fraction = min(max((self.state.time - t0) / max(t1 - t0, 1e-300), 0.0), 1.0)
         for k, ms in enumerate(self._moving):  # other bodies' surfaces, where they are at this step
             wp.launch(kc.place_surface, dim=ms.p0.shape[0], device=d, inputs=[ms.p0, ms.p1, wp.float64(f), ms.cur])
             ms.mesh.refit()
@@ -1174,11 +1178,13 @@ class EolBody(VertexImpulses, Body):
             wp.launch(kc.group_push, dim=m, device=d,
                       inputs=[self._surface, self._row_packed, self._row_ids, self._mass, lam_d,
                               len(self._colliders) + k, self._tmp])
-            acc = wp.zeros(1, dtype=wp.vec3d, device=d)
+            acc = wp.zeros(2, dtype=wp.vec3d, device=d)
             wp.launch(kc.node_friction, dim=self.grid.n_nodes, device=d,
                       inputs=[self._surface, self._tmp, self._mass, self._w, self._a, wp.float64(dt), _mat(ms.G),
                               wp.vec3d(*ms.g), wp.float64(ms.mu), acc])
-            ms.friction = self._axes() @ acc.numpy()[0]
+            host = acc.numpy()
+            ms.friction = self._axes() @ host[0]
+            ms.friction_moment = host[1]
 
     def _react(self, lam: np.ndarray) -> np.ndarray:
         """Hand each moving surface the opposite of the impulse this body took from it this step:
@@ -1190,13 +1196,16 @@ class EolBody(VertexImpulses, Body):
         total = np.zeros(3)
         for ms in self._moving:
             ms.step_impulse.zero_()
+            ms.step_weight.zero_()
             wp.launch(kc.surface_reaction, dim=self._surface.sample_face.shape[0], device=d,
-                      inputs=[self._surface, ms.mesh.id, *ms.hits, self._row_of_slot, lam_d, ms.step_impulse])
+                      inputs=[self._surface, ms.mesh.id, *ms.hits, self._row_of_slot, lam_d, ms.step_impulse,
+                              ms.step_weight])
             J = ms.step_impulse.numpy()
             if ms.friction is not None and np.any(ms.friction):
-                weight = np.linalg.norm(J, axis=1)
+                weight = ms.step_weight.numpy()
                 if weight.sum() > 0.0:
-                    J = J - np.outer(weight / weight.sum(), ms.friction)
+                    J = J + _opposite_push(ms.friction, ms.friction_moment, weight / weight.sum(),
+                                           ms.p0_host + self._fraction * (ms.p1_host - ms.p0_host))
                     total += ms.friction
             ms.impulse.assign(ms.impulse.numpy() + J)
         return total
@@ -1244,6 +1253,22 @@ class EolBody(VertexImpulses, Body):
         ids = self._row_ids[:m].numpy().astype(np.int64)
         nodes = block_nodes(self.grid.node_shape, self.collision_block, self._ccells, ids)
         return rows_from_blocks(ids, self._row_packed[:m].numpy(), nodes, int(np.prod(self._ccells)))
+
+
+def _opposite_push(force: np.ndarray, moment: np.ndarray, weight: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """(V, 3) vertex impulses at positions x (world) with total -force and moment -moment about
+    the origin: -force spread by ``weight`` (summing to one), plus the least-norm couple
+    w_k omega x r_k (r_k about the weighted centroid; zero net force) that makes up the moment."""
+    J = -np.outer(weight, force)
+    on = weight > 0.0
+    c = weight @ x
+    r = x[on] - c
+    w = weight[on]
+    missing = -moment - np.cross(x, J).sum(axis=0)
+    A = (w * (r * r).sum(axis=1)).sum() * np.eye(3) - (r * w[:, None]).T @ r
+    omega = np.linalg.lstsq(A, missing, rcond=1e-10)[0]
+    J[on] += w[:, None] * np.cross(omega, r)
+    return J
 
 
 def _mat(M: np.ndarray) -> wp.mat33d:
