@@ -92,10 +92,9 @@ def sample_world(surf: ContactSurface, i: int):
 
 
 @wp.func
-def accumulate_row(acc: wp.array2d(dtype=wp.float64), flag: wp.array(dtype=wp.int32), surf: ContactSurface,
-                   collider: int, yp: wp.vec3d, coeff: wp.vec3d, rhs: wp.float64, overlap: wp.float64) -> int:
-    """Add one sample to its row: Phi_s(yp) coeff on the 8 nodes of its grid cell, rhs and overlap;
-    returns the row's slot."""
+def sample_cell(surf: ContactSurface, yp: wp.vec3d):
+    """The grid cell holding intermediate point yp (clamped to the grid) and yp's local
+    coordinates in it, in [0, 1]^3."""
     g = (yp - surf.grid.origin) / surf.grid.h
     cells = surf.grid.shape - wp.vec3i(1, 1, 1)
     cell = wp.vec3i()
@@ -104,6 +103,15 @@ def accumulate_row(acc: wp.array2d(dtype=wp.float64), flag: wp.array(dtype=wp.in
         gd = wp.clamp(g[d], wp.float64(0.0), wp.float64(cells[d]))
         cell[d] = wp.min(int(gd), cells[d] - 1)
         t[d] = gd - wp.float64(cell[d])
+    return cell, t
+
+
+@wp.func
+def accumulate_row(acc: wp.array2d(dtype=wp.float64), flag: wp.array(dtype=wp.int32), surf: ContactSurface,
+                   collider: int, yp: wp.vec3d, coeff: wp.vec3d, rhs: wp.float64, overlap: wp.float64) -> int:
+    """Add one sample to its row: Phi_s(yp) coeff on the 8 nodes of its grid cell, rhs and overlap;
+    returns the row's slot."""
+    cell, t = sample_cell(surf, yp)
     k = surf.block
     cc = wp.vec3i(cell[0] // k, cell[1] // k, cell[2] // k)
     nc = surf.ccells
@@ -200,14 +208,7 @@ def vec3d_of(p: wp.vec3) -> wp.vec3d:
 def applied_point(surf: ContactSurface, yp: wp.vec3d) -> wp.vec3d:
     """Where a sample's row impulse acts on this body (intermediate coordinates): the centroid of
     its cell's nodes with the row's weights Phi_s m_s / sum Phi m (``accumulate_row``)."""
-    g = (yp - surf.grid.origin) / surf.grid.h
-    cells = surf.grid.shape - wp.vec3i(1, 1, 1)
-    cell = wp.vec3i()
-    t = wp.vec3d()
-    for d in range(3):
-        gd = wp.clamp(g[d], wp.float64(0.0), wp.float64(cells[d]))
-        cell[d] = wp.min(int(gd), cells[d] - 1)
-        t[d] = gd - wp.float64(cell[d])
+    cell, t = sample_cell(surf, yp)
     ny = surf.grid.shape[1]
     nz = surf.grid.shape[2]
     pm = wp.float64(0.0)
