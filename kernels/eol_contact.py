@@ -500,7 +500,8 @@ def apply_impulses(
     a: wp.array(dtype=wp.vec3d),
 ):
     """w -= M^-1 J^T lambda_0 and a -= M^-1 J^T lambda_1 (Eq. 31 on the frozen active set): the
-    unconstrained w and a become w_0 and w_1 in place. Rows share nodes: atomics."""
+    unconstrained w and a become w_0 and w_1 in place. Rows share nodes: atomics. (Also the
+    velocity change of one row group alone, for friction: lambda_1 = 0 and w = a.)"""
     i = wp.tid()
     l0 = lam[i, 0]
     l1 = lam[i, 1]
@@ -515,34 +516,6 @@ def apply_impulses(
                 c = row_coefficient(packed, i, slot) / mass[s]
                 wp.atomic_sub(w, s, l0 * c)
                 wp.atomic_sub(a, s, l1 * c)
-
-
-@wp.kernel
-def group_push(
-    surf: ContactSurface,
-    packed: wp.array2d(dtype=wp.float64),
-    row_id: wp.array(dtype=wp.int32),
-    mass: wp.array(dtype=wp.float64),
-    lam: wp.array(dtype=wp.float64),
-    group: int,
-    push: wp.array(dtype=wp.vec3d),
-):
-    """push = -M^-1 J^T lambda over the rows of one row group (a collider or another body's
-    surface): the velocity change its normal contact gave each node (velocity axes)."""
-    i = wp.tid()
-    nc = surf.ccells
-    if row_id[i] // (nc[0] * nc[1] * nc[2]) != group:
-        return
-    l = lam[i]
-    if l == wp.float64(0.0):
-        return
-    k1 = surf.block + 1
-    base = block_origin(row_id[i], surf)
-    for slot in range(k1 * k1 * k1):
-        s = slot_node(surf, base, slot)
-        if s >= 0:
-            if mass[s] > wp.float64(0.0):
-                wp.atomic_sub(push, s, l * row_coefficient(packed, i, slot) / mass[s])
 
 
 @wp.kernel

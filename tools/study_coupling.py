@@ -189,6 +189,15 @@ def run_pbd_pair(mode: str, k: int, device: str) -> dict:
                 a_vx=float(a.linear_momentum()[0] / a.masses.sum()), b_vx=float(b.linear_momentum()[0] / b.masses.sum()))
 
 
+def emit(row: dict, out: str | None) -> None:
+    """Print one JSON line, and append it to ``out`` if given."""
+    line = json.dumps(row)
+    print(line, flush=True)
+    if out:
+        with open(out, "a") as fh:
+            fh.write(line + "\n")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--device", default="cpu")
@@ -202,18 +211,10 @@ def main() -> None:
     if "pbd_pair" in cases:
         cases.remove("pbd_pair")
         for mode, k in (("lockstep", 1), ("explicit", 1), ("explicit", 10)):
-            line = json.dumps(run_pbd_pair(mode, k, args.device))
-            print(line, flush=True)
-            if args.out:
-                with open(args.out, "a") as fh:
-                    fh.write(line + "\n")
+            emit(run_pbd_pair(mode, k, args.device), args.out)
     for case in cases:
         for k in ((1, 4, 16, 64) if case.startswith("eol") else (1, 2, 4, 8, 16, 32)):
-            line = json.dumps(run_eol(case, k, args.device) if case.startswith("eol") else run(case, k, args.device, ops))
-            print(line, flush=True)
-            if args.out:
-                with open(args.out, "a") as fh:
-                    fh.write(line + "\n")
+            emit(run_eol(case, k, args.device) if case.startswith("eol") else run(case, k, args.device, ops), args.out)
 
 
 if __name__ == "__main__":

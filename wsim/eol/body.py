@@ -898,7 +898,8 @@ class EolBody(VertexImpulses, Body):
         eps = 1e-9 * max(t1 - t0, 1e-12)
         self._span = (self.time, t1)  # where the moving surfaces are: linear over this advance
         for ms in self._moving:
-            ms.G, ms.g = rigid_fit(ms.p0_host, ms.p1_host, t1 - self.time)
+            if ms.mu > 0.0:  # friction's reference motion
+                ms.G, ms.g = rigid_fit(ms.p0_host, ms.p1_host, t1 - self.time)
             wp.launch(kc.surface_velocity, dim=ms.p0.shape[0], device=self._device,
                       inputs=[ms.p0, ms.p1, wp.float64(1.0 / max(t1 - self.time, 1e-300)), ms.velocity])
         while self._failure is None and self.time < t1 - eps:
@@ -1006,7 +1007,9 @@ class EolBody(VertexImpulses, Body):
                           inputs=[self._surface, self._row_packed, self._row_ids, self._mass,
                                   wp.array(lam, dtype=wp.float64, device=d), self._w, self._a])
                 if self._moving:
-                    self._friction(lam[:, 0] + dt_guess * lam[:, 1], dt_guess)
+                    group = np.empty(m, dtype=np.int64)
+                    group[order] = system.collider
+                    self._friction(lam[:, 0] + dt_guess * lam[:, 1], dt_guess, group)
                 n_active = int(sol.active.sum())
                 t = self._tick("qp", t)
             # 4. least-squares split of both parts (Eqs. 23-25, 32) and the step size (Eq. 33)
@@ -1164,20 +1167,23 @@ class EolBody(VertexImpulses, Body):
                       inputs=[surf, ms.mesh.id, ms.velocity, float(ms.reach), len(self._colliders) + k,
                               self._row_acc, self._row_flag, *ms.hits])
 
-    def _friction(self, lam: np.ndarray, dt: float) -> None:
+    def _friction(self, lam: np.ndarray, dt: float, group: np.ndarray) -> None:
         """Coulomb friction against each moving surface at the nodes its rows pushed (``lam``: the
-        multipliers at dt, device row order), on w0; the impulses are kept for ``_react``."""
+        multipliers at dt, ``group``: each row's collider or surface, both in device row order), on
+        w0; the impulses are kept for ``_react``."""
         d = self._device
-        lam_d = wp.array(lam, dtype=wp.float64, device=d)
         m = len(lam)
         for k, ms in enumerate(self._moving):
             ms.friction = np.zeros(3)
             if ms.mu <= 0.0:
                 continue
+            # the velocity change this surface's rows gave each node: -M^-1 J^T lambda over them
+            own = np.zeros((m, 2))
+            own[:, 0] = np.where(group == len(self._colliders) + k, lam, 0.0)
             self._tmp.zero_()
-            wp.launch(kc.group_push, dim=m, device=d,
-                      inputs=[self._surface, self._row_packed, self._row_ids, self._mass, lam_d,
-                              len(self._colliders) + k, self._tmp])
+            wp.launch(kc.apply_impulses, dim=m, device=d,
+                      inputs=[self._surface, self._row_packed, self._row_ids, self._mass,
+                              wp.array(own, dtype=wp.float64, device=d), self._tmp, self._tmp])
             acc = wp.zeros(2, dtype=wp.vec3d, device=d)
             wp.launch(kc.node_friction, dim=self.grid.n_nodes, device=d,
                       inputs=[self._surface, self._tmp, self._mass, self._w, self._a, wp.float64(dt), _mat(ms.G),
