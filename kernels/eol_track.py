@@ -13,6 +13,10 @@ import warp as wp
 
 from wsim.kernels.eol_grid import Grid, sample_gradient, sample_trilinear
 
+# longest Newton step [cells]: a step moves material well under a cell (cfl < 1), and a tracking
+# guess from rest (tests, a regrid) may be a few cells off; longer steps come from a folded field
+MAX_STEP = 4.0
+
 
 @wp.kernel
 def track_surface(
@@ -25,14 +29,37 @@ def track_surface(
     y_vertex: wp.array(dtype=wp.vec3d),
     iterations: wp.array(dtype=wp.int32),
 ):
-    """Algorithm 2 for one vertex per thread: y with z(y) = z_v to |e| < tol (or max_iter steps)."""
+    """Algorithm 2 for one vertex per thread: y with z(y) = z_v to |e| < tol (or max_iter steps).
+
+    Safeguarded Newton: a step is at most ``MAX_STEP`` cells long and is halved (up to 8 times)
+    until the residual falls; the point with the smallest residual is kept. Where the field is (nearly)
+    folded, grad_y z is (nearly) singular and a plain Newton step jumped a vertex hundreds of
+    cells away, which read as material leaving the grid (issue 16 item 6)."""
     v = wp.tid()
     p = guess[v]
     n = int(0)
     e = z_vertex[v] - sample_trilinear(z_field, p, grid)
-    while wp.length(e) >= tol and n < max_iter:
-        p = p + wp.inverse(sample_gradient(z_field, p, grid)) * e
-        e = z_vertex[v] - sample_trilinear(z_field, p, grid)
+    r = wp.length(e)
+    while r >= tol and n < max_iter:
+        step = wp.inverse(sample_gradient(z_field, p, grid)) * e
+        size = wp.length(step)
+        if not wp.isfinite(size):
+            break
+        if size > wp.float64(MAX_STEP) * grid.h:
+            step = step * (wp.float64(MAX_STEP) * grid.h / size)
+        q = p + step
+        eq = z_vertex[v] - sample_trilinear(z_field, q, grid)
+        halvings = int(0)
+        while wp.length(eq) >= r and halvings < 8:
+            step = step * wp.float64(0.5)
+            q = p + step
+            eq = z_vertex[v] - sample_trilinear(z_field, q, grid)
+            halvings += 1
         n += 1
+        if wp.length(eq) >= r:
+            break  # no descent along the Newton direction: keep the best point
+        p = q
+        e = eq
+        r = wp.length(e)
     y_vertex[v] = p
     iterations[v] = wp.int32(n)

@@ -398,3 +398,104 @@ def test_body_moment_split_is_the_least_squares_split(device, rng, lagrangian, s
         L_h, c_h = lagrangian_fields(lagrangian, *moments(y, w[active], k))
         np.testing.assert_allclose(L_h, L, atol=1e-9 * scale / np.abs(y).max())
         np.testing.assert_allclose(c_h, c, atol=1e-9 * scale)
+
+
+# -- robustness of thin parts (issue 16 item 6) -----------------------------------------------
+def test_reference_map_extension_continues_an_affine_map(device):
+    """z is continued from the nodes with material into the empty layers around them: an affine
+    map (any A, b) is reproduced exactly there; the material nodes and the nodes beyond the
+    layers are untouched."""
+    import warp as wp
+
+    from wsim.eol.advection import extend_reference_map
+
+    m = body("sphere")
+    grid = make_grid(m.vertices, 8, padding=4)
+    samples = material_samples(grid, m.vertices, m.faces)
+    mass = lumped_masses(grid, samples, RHO)
+    y = grid.node_positions()
+    A = np.array([[0.9, 0.1, 0.0], [-0.05, 1.1, 0.08], [0.02, 0.0, 0.95]])
+    z_affine = y @ A.T + np.array([0.01, -0.02, 0.03])
+    z0 = np.where((mass > 0)[:, None], z_affine, 7.0)  # stale values off the material
+    shape = grid.node_shape
+    za = wp.array(z0.reshape(*shape, 3), dtype=wp.vec3d, device=device)
+    layer = wp.zeros(shape, dtype=wp.int32, device=device)
+    G = wp.zeros(shape, dtype=wp.mat33d, device=device)
+    extend_reference_map(za, wp.array(mass.reshape(shape), dtype=wp.float64, device=device), grid.h, 2, layer,
+                         G, device)
+    z, lay = za.numpy().reshape(-1, 3), layer.numpy().ravel()
+    assert set(np.unique(lay)) == {0, 1, 2, 3}
+    np.testing.assert_array_equal(z[lay == 1], z0[lay == 1])
+    np.testing.assert_allclose(z[lay >= 2], z_affine[lay >= 2], atol=1e-12)
+    np.testing.assert_array_equal(z[lay == 0], 7.0)
+
+
+def test_hourglass_control_acts_on_under_integrated_cells_only(device, rng):
+    """Hourglass control (kernel ``hourglass_forces``): no force or energy for an affine reference
+    map or in fully integrated cells; on a perturbed map the forces sum to zero with no moment
+    (momentum untouched) and push each corner along F r_c, back toward the cell's affine fit."""
+    import warp as wp
+
+    from wsim.eol.elastic import hourglass_forces
+    from wsim.kernels.eol_grid import grid_struct
+
+    def run(kind, z):
+        m = body(kind)
+        grid = make_grid(m.vertices, 8 if kind == "box" else 6)  # the box fills whole cells at 8
+        samples = material_samples(grid, m.vertices, m.faces)
+        shape = grid.node_shape
+        forces = wp.zeros(shape, dtype=wp.vec3d, device=device)
+        energy = wp.zeros(1, dtype=wp.float64, device=device)
+        hourglass_forces(grid_struct(grid), wp.array(z(grid).reshape(*shape, 3), dtype=wp.vec3d, device=device),
+                         wp.array(samples.points, dtype=wp.vec3d, device=device),
+                         wp.array(samples.weights, dtype=wp.float64, device=device), grid.h**3, np.eye(3),
+                         0.1 * MATERIAL.mu, wp.zeros(grid.cells, dtype=wp.float64, device=device), forces, energy,
+                         device)
+        return grid, forces.numpy().reshape(-1, 3), float(energy.numpy()[0])
+
+    A = np.eye(3) + 0.1 * rng.standard_normal((3, 3))
+    _, f, e = run("sphere", lambda g: g.node_positions() @ A.T + 0.03)
+    assert np.abs(f).max() < 1e-9 and abs(e) < 1e-12
+    noise = {}
+
+    def wobbly(g):
+        if g.n_nodes not in noise:
+            noise[g.n_nodes] = 0.01 * g.h * rng.standard_normal((g.n_nodes, 3))
+        return g.node_positions() + noise[g.n_nodes]
+
+    _, f_full, e_full = run("box", wobbly)  # the box fills whole cells: nothing under-integrated
+    assert np.abs(f_full).max() == 0.0 and e_full == 0.0
+    grid, f, e = run("sphere", wobbly)
+    y = grid.node_positions()
+    assert e > 0.0 and np.abs(f).max() > 0.0
+    assert np.abs(f.sum(axis=0)).max() < 1e-12 * np.abs(f).sum()
+    assert np.abs(np.cross(y, f).sum(axis=0)).max() < 1e-12 * np.abs(f).sum() * np.abs(y).max()
+    # the forces oppose the perturbation: moving nodes along f lowers the hourglass energy
+    step = 1e-3 * grid.h / np.abs(f).max()
+    _, _, e_moved = run("sphere", lambda g: wobbly(g) - step * f)  # dz = -G dy, G ~ I here
+    assert e_moved < e
+
+
+def test_tracking_is_safeguarded_on_a_folded_field(device):
+    """Where z folds (grad z singular in a cell) a plain Newton step is unbounded and threw
+    vertices hundreds of cells away (issue 16 item 6). The safeguarded step never raises the
+    residual, stays finite and moves at most MAX_STEP cells per iteration."""
+    from wsim.eol.tracking import track_surface
+    from wsim.kernels.eol_track import MAX_STEP
+
+    m = body("sphere")
+    grid = make_grid(m.vertices, 8, padding=3)
+    y = grid.node_positions()
+    z = y.copy()
+    cell, _ = grid.locate(np.zeros((1, 3)))
+    from wsim.eol.grid import CORNERS
+    corners = grid.node_index(cell[0] + CORNERS)
+    z[corners] = z[corners].mean(axis=0) + 1e-9 * (y[corners] - y[corners].mean(axis=0))  # collapsed: G ~ 1e-9
+    guess = np.array([[0.2, 0.3, 0.4]]) * grid.h + y[corners[0]]
+    target = guess + np.array([[0.3, 0.0, 0.0]]) * grid.h  # not reachable inside the collapsed cell
+    out, iters = track_surface(grid, z, target, guess, max_iter=20, device=device)
+    nodes, phi = grid.shape_functions(np.vstack([guess, out]))
+    r = np.linalg.norm(np.einsum("pc,pci->pi", phi, z[nodes]) - target, axis=1)
+    assert np.all(np.isfinite(out))
+    assert r[1] <= r[0]
+    assert np.linalg.norm(out - guess) <= MAX_STEP * grid.h * max(int(iters[0]), 1) + 1e-12

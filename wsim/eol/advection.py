@@ -45,6 +45,19 @@ def advect_arrays(q: wp.array, v: wp.array, out: wp.array, grid: Grid, dt: float
         wp.launch(ka.semi_lagrangian, dim=shape, device=device, inputs=[fwd, v, grid, dtw, out])
 
 
+def extend_reference_map(z: wp.array, mass: wp.array, h: float, layers: int, layer: wp.array, G: wp.array,
+                         device) -> None:
+    """Continue the reference map z (3-D vec3d node array, in place) from the nodes with material
+    (``mass`` > 0, same shape) into ``layers`` layers of empty nodes around them, each node taking the
+    mean first-order prediction z_n + G_n (y_s - y_n) of its neighbours in the layers before
+    (``eol_advect.extend_reference_map``): an affine map is continued exactly. ``layer`` (int32) and
+    ``G`` (mat33d), shaped like z, are scratch."""
+    shape = z.shape
+    wp.launch(ka.reference_map_gradient, dim=shape, device=device, inputs=[z, mass, wp.float64(h), layer, G])
+    for known in range(1, layers + 1):
+        wp.launch(ka.extend_reference_map, dim=shape, device=device, inputs=[z, layer, G, wp.float64(h), known])
+
+
 def advect(grid: EolGrid, q: np.ndarray, v: np.ndarray, dt: float, scheme: str = "semi-lagrangian",
            device=None, limit: bool = False) -> np.ndarray:
     """Advect nodal values q (n_nodes, 3) by nodal velocities v (n_nodes, 3) over dt [s] (host arrays;

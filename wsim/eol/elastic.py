@@ -31,6 +31,18 @@ def sample_forces(grid: Grid, z: wp.array, y: wp.array, volumes: wp.array, Fp_in
                       wp.float64(material.mu), wp.float64(material.lam), wp.float64(material.rho), forces, mass, energy])
 
 
+def hourglass_forces(grid: Grid, z: wp.array, y: wp.array, volumes: wp.array, full: float, F_L: np.ndarray,
+                     stiffness: float, filled: wp.array, forces: wp.array, energy: wp.array, device) -> None:
+    """Add the hourglass control of under-integrated cells (kernel ``hourglass_forces``: force
+    k F r_c / h^2 with k = ``stiffness`` mu V (1 - V / full)) to ``forces`` [N] and its energy to
+    ``energy`` [J]; ``filled`` (cells-shaped scratch) receives each cell's material volume [m^3]."""
+    filled.zero_()
+    wp.launch(ke.cell_fill, dim=volumes.shape[0], device=device, inputs=[z, grid, y, volumes, filled])
+    wp.launch(ke.hourglass_forces, dim=filled.shape, device=device,
+              inputs=[z, filled, grid.h, wp.float64(full), wp.mat33d(*np.asarray(F_L, dtype=np.float64).ravel()),
+                      wp.float64(stiffness), forces, energy])
+
+
 def elastic_forces(grid: EolGrid, z_nodes: np.ndarray, y: np.ndarray, volumes: np.ndarray, material: ElasticMaterial,
                    device=None, F_L: np.ndarray | None = None, Fp_inv: np.ndarray | None = None,
                    ) -> tuple[np.ndarray, np.ndarray, float]:
