@@ -44,7 +44,7 @@ def adaptive_dt(v0_star: np.ndarray, v1_star: np.ndarray, spacing: float | np.nd
     return min(dt, dt_max)
 
 
-def elastic_dt_limit(h: float, material, safety: float = 0.5) -> float:
+def elastic_dt_limit(h: float, material, safety: float = 0.25) -> float:
     """Explicit elasticity's limit: the P wave crosses at most ``safety`` of a cell per step, h / c1."""
     if material.incompressible:
         raise InvalidParameter("explicit EoL elasticity needs a compressible material (nu < 0.5)")
