@@ -220,8 +220,9 @@ def test_free_box_with_a_random_velocity_field_does_not_gain_energy():
     """A free, undamped box (0.3 x 0.2 x 0.15 m, E = 1e5, 8 cells), no gravity, given a small
     non-rigid velocity field: its energy (kinetic + elastic) can only be lost to advection. At the
     old elastic cap (0.5 h / c1) a mode grew out of it by about 0.7 % a step, 30x the energy by 2 s
-    (spinning or not; found by an independent check on a spinning box). At the default (0.25) it
-    decays. The old cap is run too, so the test shows the growth it guards against."""
+    (spinning or not; found by an independent check on a spinning box). At the automatic cap of an
+    undamped body (0.25) it decays. The old cap is run too, so the test shows the growth it guards
+    against; a damped body keeps the faster cap, and decays there."""
     rng = np.random.default_rng(0)
     noise = {}
 
@@ -240,7 +241,17 @@ def test_free_box_with_a_random_velocity_field_does_not_gain_energy():
             out.append(b.kinetic_energy() + b.elastic_energy)
         return np.array(out)
 
-    E = energies()
-    assert E[-1] < E[2] and E.max() < 1.05 * E[2]
+    E = energies()  # undamped: the automatic cap is 0.25 h / c1
+    assert E[-1] < E[2] and E[2:].max() < 1.05 * E[2]
     E_old = energies(elastic_safety=0.5)
     assert E_old[-1] > 5.0 * E_old[2]
+    # damped (10 Pa s >= 0.02 rho h c1 = 8.7 Pa s here): the automatic cap is the faster 0.5
+    w = wsim.World(fps=30, gravity=(0.0, 0.0, 0.0), device="cpu")
+    mat = wsim.ElasticMaterial(E=1e5, nu=0.3, rho=1000.0)
+    b = w.add(EolBody(trimesh.creation.box((0.3, 0.2, 0.15)), mat, resolution=8, velocity_field=field, damping=10.0))
+    assert b.elastic_safety == 0.5 and b.dt_elastic == pytest.approx(min(0.5 * b.grid.h / mat.c1, 1000.0 * b.grid.h**2 / 120.0))
+    E_damped = []
+    for _ in range(60):
+        w.step()
+        E_damped.append(b.kinetic_energy() + b.elastic_energy)
+    assert E_damped[-1] < E_damped[2] and max(E_damped[2:]) < 1.05 * E_damped[2]

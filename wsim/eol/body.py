@@ -68,6 +68,9 @@ LAGRANGIAN = ("rigid", "affine", "eulerian")
 # at most cfl (< 1) cells upstream and the surface lies within a cell of the material points, so
 # two would do; the third keeps a node that loses its material consistent for one more step
 EXTEND_LAYERS = 3
+# Kelvin-Voigt viscosity, in units of rho h c1, from which a body gets the longer elastic cap
+# (0.5 h / c1 instead of 0.25; see ``EolBody``'s elastic_safety)
+DAMPED_CAP_VISCOSITY = 0.02
 STAGES = ("forces", "collision", "assembly", "qp", "ls", "advect", "track", "plasticity")
 
 
@@ -154,12 +157,15 @@ class EolBody(VertexImpulses, Body):
             ``max(2, padding)`` cells, up to 3x its first size per axis (``grid``, and the state's
             ``grid_grown``); node values are copied exactly, so growing changes nothing else.
         dt_max: cap on the step [s] besides the frame and the elastic limit (None: none).
-        elastic_safety: the elastic cap is this fraction of h / c1 (P-wave cell crossing time). At
-            0.5 (the default until issue 16's last session) a free, undamped box given a small random
-            velocity field gained 35x its energy in 4 s, spinning or not (slowly: about 0.7 % a
-            step, growing out of any noise; an independent check); 0.35 and 0.3 only delay it
-            (to ~3 s), 0.25 keeps that box and a 2 rad/s spin bounded and slowly dissipating for
-            10 s. A larger mass_floor does not cure it: it is the scheme's step, not light nodes.
+        elastic_safety: the elastic cap is this fraction of h / c1 (P-wave cell crossing time).
+            None (default): 0.5 for a body with ``damping`` >= 0.02 rho h c1, else 0.25. At 0.5
+            a free, undamped box (0.3 x 0.2 x 0.15 m, E = 1e5, 8 cells) given a small random
+            velocity field gained 35x its energy in 4 s, spinning or not (about 0.7 % a step,
+            growing out of any noise; an independent check found it on a spinning box); 0.35 and
+            0.3 only delay it, 0.25 keeps it bounded for 10 s. A larger mass_floor does not cure
+            it: it is the scheme's step, not light nodes. Kelvin-Voigt damping does: at 0.5 the
+            box was bounded with 2 Pa s (0.005 rho h c1) and grew with 1 Pa s, hence the
+            4x margin of the automatic choice, which keeps damped scenes at the faster cap.
         quadrature: material points per cell axis (Gauss-Legendre).
         collision_block: edge of a collision cell, in cells of the body's grid (an integer >= 1): one
             contact row per collider and collision cell. Larger blocks: fewer rows and a cheaper QP,
@@ -222,7 +228,7 @@ class EolBody(VertexImpulses, Body):
         angular_velocity: Sequence[float] = (0.0, 0.0, 0.0),
         padding: int = 2,
         dt_max: float | None = None,
-        elastic_safety: float = 0.25,
+        elastic_safety: float | None = None,
         quadrature: int = 2,
         collision_block: int = 1,
         contact_spacing: float = 1.0,
@@ -278,8 +284,8 @@ class EolBody(VertexImpulses, Body):
             if dt_max <= 0.0:
                 raise InvalidParameter(f"{p}: dt_max = {dt_max} s must be > 0")
         self._positive = {k: finite_number(v, f"{p}: {k}") for k, v in
-                          (("elastic_safety", elastic_safety),
-                           ("contact_relaxation", contact_relaxation), ("track_tol", track_tol),
+                          ((("elastic_safety", elastic_safety),) if elastic_safety is not None else ())
+                          + (("contact_relaxation", contact_relaxation), ("track_tol", track_tol),
                            ("contact_spacing", contact_spacing))}
         for k, v in self._positive.items():
             if v <= 0.0:
@@ -329,7 +335,11 @@ class EolBody(VertexImpulses, Body):
         self._volumes = samples.weights
         self._z_vertices = np.asarray(tracked, dtype=np.float64) - self.com  # the given vertices first
         self.mass = material.rho * float(samples.weights.sum())
-        self.dt_elastic = elastic_dt_limit(self.grid.h, material, self._positive["elastic_safety"])
+        if elastic_safety is None:  # see the docstring: undamped bodies need the shorter cap
+            damped = self.damping >= DAMPED_CAP_VISCOSITY * material.rho * self.grid.h * material.c1
+            elastic_safety = 0.5 if damped else 0.25
+        self.elastic_safety = float(self._positive.get("elastic_safety", elastic_safety))
+        self.dt_elastic = elastic_dt_limit(self.grid.h, material, self.elastic_safety)
         if self.damping > 0.0:  # explicit viscosity: diffusion number eta dt / (rho h^2) <= 1/12
             self.dt_elastic = min(self.dt_elastic, material.rho * self.grid.h**2 / (12.0 * self.damping))
         self._mass_floor = floor * material.rho * self.grid.h**3
