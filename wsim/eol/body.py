@@ -199,8 +199,9 @@ class EolBody(VertexImpulses, Body):
             ``eol_step.coriolis_matrix``) or "explicit" (forward Euler, the earlier scheme).
         hourglass: hourglass control of cells the material points under-integrate (a thin part's
             cells hold one or two of them), as a fraction of the shear modulus (0: off; see
-            ``eol_elastic.hourglass_forces``). Fully integrated cells get none. Without it a
-            bunny landing at 3.7 m/s diverged 2.4 s after the landing (issue 16 item 6).
+            ``eol_elastic.hourglass_forces``). Fully integrated cells get none. In one run, without
+            it a bunny landing at 3.7 m/s diverged 2.4 s after the landing (issue 16 item 6); in
+            ten runs of a fish landing it neither prevented nor caused failures (README).
         friction: Coulomb coefficient against other bodies (the larger of the two bodies' values;
             None: ``wsim.contact.DEFAULT_FRICTION`` unless the other gives one). Contact with the
             World's colliders is frictionless, as in the paper.
@@ -283,9 +284,12 @@ class EolBody(VertexImpulses, Body):
             dt_max = finite_number(dt_max, f"{p}: dt_max [s]")
             if dt_max <= 0.0:
                 raise InvalidParameter(f"{p}: dt_max = {dt_max} s must be > 0")
+        if elastic_safety is not None:  # None: chosen from the damping once the grid is known
+            elastic_safety = finite_number(elastic_safety, f"{p}: elastic_safety")
+            if elastic_safety <= 0.0:
+                raise InvalidParameter(f"{p}: elastic_safety = {elastic_safety} must be > 0")
         self._positive = {k: finite_number(v, f"{p}: {k}") for k, v in
-                          ((("elastic_safety", elastic_safety),) if elastic_safety is not None else ())
-                          + (("contact_relaxation", contact_relaxation), ("track_tol", track_tol),
+                          (("contact_relaxation", contact_relaxation), ("track_tol", track_tol),
                            ("contact_spacing", contact_spacing))}
         for k, v in self._positive.items():
             if v <= 0.0:
@@ -338,7 +342,7 @@ class EolBody(VertexImpulses, Body):
         if elastic_safety is None:  # see the docstring: undamped bodies need the shorter cap
             damped = self.damping >= DAMPED_CAP_VISCOSITY * material.rho * self.grid.h * material.c1
             elastic_safety = 0.5 if damped else 0.25
-        self.elastic_safety = float(self._positive.get("elastic_safety", elastic_safety))
+        self.elastic_safety = float(elastic_safety)
         self.dt_elastic = elastic_dt_limit(self.grid.h, material, self.elastic_safety)
         if self.damping > 0.0:  # explicit viscosity: diffusion number eta dt / (rho h^2) <= 1/12
             self.dt_elastic = min(self.dt_elastic, material.rho * self.grid.h**2 / (12.0 * self.damping))

@@ -34,7 +34,7 @@ def sample_forces(grid: Grid, z: wp.array, y: wp.array, volumes: wp.array, Fp_in
 def hourglass_forces(grid: Grid, z: wp.array, y: wp.array, volumes: wp.array, full: float, F_L: np.ndarray,
                      stiffness: float, filled: wp.array, forces: wp.array, energy: wp.array, device) -> None:
     """Add the hourglass control of under-integrated cells (kernel ``hourglass_forces``: force
-    k F r_c / h^2 with k = ``stiffness`` mu V (1 - V / full)) to ``forces`` [N] and its energy to
+    k F r_c / h^2 with k = ``stiffness`` V (1 - V / full), ``stiffness`` [Pa]) to ``forces`` [N] and its energy to
     ``energy`` [J]; ``filled`` (cells-shaped scratch) receives each cell's material volume [m^3]."""
     filled.zero_()
     wp.launch(ke.cell_fill, dim=volumes.shape[0], device=device, inputs=[z, grid, y, volumes, filled])
