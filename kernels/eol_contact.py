@@ -17,8 +17,8 @@ row's J coefficients, right side and overlap into a fixed slot per row with atom
 ``compact_rows`` packs the rows that received samples (clearing their slots for the next step):
 only those travel to the host. Per row:
 
-    J: 3 (block + 1)^3 coefficients  int_{Gamma_A in Omega, block} Phi_s (n_A . n_B) n_B dGamma  (velocity axes)
-    b: sum of (n_A . n_B) n_B . v_B - overlap / tau  (collider flux minus relaxation of existing overlap)
+    J: 3 (block + 1)^3 coefficients  -int_{Gamma_A in Omega, block} Phi_s |n_A . n_B| n_B dGamma  (velocity axes)
+    b: sum of -|n_A . n_B| n_B . v_B - overlap / tau  (collider flux minus relaxation of existing overlap)
     overlap volume: sum of |n_A . n_B| depth dGamma
 
 Frictionless contact pushes along the collider's normal n_B only. The exact flux n_A . v_A of Eq.
@@ -32,6 +32,18 @@ frictionless plane by 7.6 cm in 3 s (issue 16). Each sample's coefficient is the
 projected on the collider's normal, (n_A . n_B) n_B dGamma (the projected area of the sample
 along n_B): the same constraint on normal motion, no constraint on, and no impulse along, the
 collider's tangent plane.
+
+Where the body's surface inside the collider faces into it (n_A . n_B < 0: the cap of a convex
+body below a plane, a face landing flat) that is -|n_A . n_B| n_B dGamma. A thin part that crosses
+the collider also has faces looking out of it (n_A . n_B > 0: a fin's upper face, below the ground),
+whose exact flux is the opposite: moving them out grows the overlap. In a row that holds both faces
+they cancel (J ~ 0 while b = -overlap / tau < 0: an infeasible row, and the QP fell back to NNLS on
+nearly dependent rows); in a row that holds the upper face alone, the multiplier pulls the fin into
+the ground. An independent check saw sub-cell fins 2-6 cells deep and the body's momentum off its
+impulses by up to 186 kg m/s in a frame (issue 16). Every sample inside therefore asks its surface
+to move out, -|n_A . n_B| n_B dGamma whichever way it faces: identical to Eq. (27) wherever the
+body's surface inside faces the collider, and a row's impulse -J^T lambda (lambda >= 0) can only
+push the body out of the collider.
 
 The velocity of the body at a sample is the mass-weighted mean of its cell's nodes,
 sum_s Phi_s m_s w_s / sum_s Phi_s m_s (Phi_s m_s / sum Phi m is the row's weight of node s, in
@@ -144,15 +156,21 @@ def accumulate_row(acc: wp.array2d(dtype=wp.float64), flag: wp.array(dtype=wp.in
 
 
 @wp.func
+def pushed_area(an: wp.vec3d, cn: wp.vec3d) -> wp.vec3d:
+    """A sample's row coefficient (world): its area element an projected on the collider's normal
+    cn, always towards the inside, -|an . cn| cn, so that its impulse pushes out whichever way the
+    surface faces (see the module docstring)."""
+    return -wp.abs(wp.dot(an, cn)) * cn
+
+
+@wp.func
 def add_sample(acc: wp.array2d(dtype=wp.float64), flag: wp.array(dtype=wp.int32), surf: ContactSurface,
                collider: int, yp: wp.vec3d, an: wp.vec3d, cn: wp.vec3d, depth: wp.float64, v_B: wp.vec3d):
-    """A sample inside the collider: coefficient (n_A . n_B) n_B in the velocity axes (n_A projected
-    on the collider's normal: see the module docstring), right side that coefficient . v_B -
-    overlap / tau with v_B the collider's velocity at the sample, overlap |n_A . n_B| depth.
-    Returns the row's slot."""
-    proj = wp.dot(an, cn)
-    vol = wp.abs(proj) * depth
-    coeff = proj * cn
+    """A sample inside the collider: coefficient -|n_A . n_B| n_B in the velocity axes
+    (``pushed_area``), right side that coefficient . v_B - overlap / tau with v_B the collider's
+    velocity at the sample, overlap |n_A . n_B| depth. Returns the row's slot."""
+    coeff = pushed_area(an, cn)
+    vol = wp.abs(wp.dot(an, cn)) * depth
     return accumulate_row(acc, flag, surf, collider, yp, surf.to_axes * coeff, wp.dot(coeff, v_B) - vol * surf.inv_tau, vol)
 
 
@@ -294,8 +312,8 @@ def surface_reaction(
     weight: wp.array(dtype=wp.float64),
 ):
     """The partner's share of the contact impulse (Newton's third law): the rows push this body's
-    nodes by -J^T lambda, sample s of row r contributing -lambda_r c_s with c_s = (n_A . n_B) n_B
-    dGamma (world; its node weights sum to one); the partner receives +lambda_r c_s at the sample's
+    nodes by -J^T lambda, sample s of row r contributing -lambda_r c_s with c_s = -|n_A . n_B| n_B
+    dGamma (``pushed_area``, world; its node weights sum to one); the partner receives +lambda_r c_s at the sample's
     nearest point (shifted, see below), spread over that face's vertices by barycentric weights.
     ``weight`` gets each vertex's share |lambda_r c_s| b_k at the nearest point itself (positive:
     how the friction's reaction is spread). ``lam`` is per packed row (this step's lambda_0 + dt
@@ -314,7 +332,7 @@ def surface_reaction(
     f = hit_face[i]
     n = wp.mesh_eval_face_normal(mesh, f)
     cn = wp.vec3d(wp.float64(n[0]), wp.float64(n[1]), wp.float64(n[2]))
-    J = l * wp.dot(an, cn) * cn
+    J = l * pushed_area(an, cn)
     # the rows push this body's nodes at their mass-weighted centroid, not at the sample: the
     # partner takes J at its nearest point shifted along its face by the same offset (barycentric
     # weights of the shifted point, negative outside the face), so the pair's angular momentum

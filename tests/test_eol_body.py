@@ -268,9 +268,11 @@ def test_contact_rows_match_a_host_assembly(device, block):
             vol = abs(an[p] @ cn[p]) * depth[p]
             key = (ci, *(cell[p] // block))
             J, bb, ov = ref.setdefault(key, [{}, 0.0, 0.0])
-            # issue 16: the area element projected on the collider's normal (frictionless: no
-            # tangential impulse), the sample's velocity the mass-weighted mean of its cell's nodes
-            coeff = (an[p] @ cn[p]) * cn[p]
+            # issue 16: the area element projected on the collider's normal, towards its inside
+            # whichever way the surface faces (frictionless: no tangential impulse; a thin part's
+            # outward-looking face pushes out too), the sample's velocity the mass-weighted mean
+            # of its cell's nodes
+            coeff = -abs(an[p] @ cn[p]) * cn[p]
             pm = phi[p] @ mass[nodes[p]]
             for nd, w in zip(nodes[p], phi[p]):
                 J[nd] = J.get(nd, 0.0) + w * mass[nd] / pm * (F.T @ coeff)
