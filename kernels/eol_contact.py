@@ -63,6 +63,7 @@ from __future__ import annotations
 import warp as wp
 
 from wsim.kernels.eol_grid import Grid, corner_weight, node_position
+from wsim.kernels.mesh import query_inside
 
 
 @wp.struct
@@ -209,7 +210,7 @@ def mesh_rows(
     yp, x, an = sample_world(surf, i)
     pl = to_local * wp.vec4d(x[0], x[1], x[2], wp.float64(1.0))
     p = wp.vec3(float(pl[0]), float(pl[1]), float(pl[2]))
-    q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
+    q = query_inside(mesh, p, max_dist)
     if q.result and q.sign < 0.0:
         closest = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
         n = wp.mesh_eval_face_normal(mesh, q.face)
@@ -285,7 +286,7 @@ def surface_rows(
     hit_row[i] = -1
     yp, x, an = sample_world(surf, i)
     p = wp.vec3(float(x[0]), float(x[1]), float(x[2]))
-    q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
+    q = query_inside(mesh, p, max_dist)
     if q.result and q.sign < 0.0:
         closest = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
         n = wp.mesh_eval_face_normal(mesh, q.face)

@@ -13,6 +13,7 @@ was delivered (a force with no node with mass in its cell is dropped and not cou
 from __future__ import annotations
 
 import warp as wp
+from wsim.kernels.mesh import query_inside
 from wsim.kernels.eol_grid import (
     Grid,
     cell_of,
@@ -96,6 +97,6 @@ def mesh_depth(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), max_dist: float
     i = wp.tid()
     p = points[i]
     depth[i] = wp.float32(0.0)
-    q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
+    q = query_inside(mesh, p, max_dist)
     if q.result and q.sign < 0.0:
         depth[i] = wp.length(wp.mesh_eval_position(mesh, q.face, q.u, q.v) - p)

@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from wsim.kernels.mesh import query_inside
+
 
 @wp.func
 def friction_correction(dx: wp.vec3, n: wp.vec3, depth: float, mu: float) -> wp.vec3:
@@ -88,7 +90,7 @@ def surface_contact(mesh: wp.uint64, p: wp.vec3, max_dist: float, margin: float)
     """Nearest point s of a closed, outward surface mesh to p: (depth = margin - signed distance,
     s, the outward normal n there, the face, the barycentric weights of s on it). depth <= 0: no
     contact (also when nothing is within ``max_dist``)."""
-    q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
+    q = query_inside(mesh, p, max_dist)
     if not q.result:
         return -1.0, p, wp.vec3(0.0), int(0), wp.vec3(0.0)
     s = wp.mesh_eval_position(mesh, q.face, q.u, q.v)

@@ -63,7 +63,7 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
     rubber = wsim.ElasticMaterial(E=2.0e5, nu=0.3, rho=600.0)
     for name, at, spin in (("pbd_fish_a", (-0.33, 0.45, 0.03), (0.0, 2.0, 1.0)),
                            ("pbd_fish_b", (0.2, 0.85, -0.04), (1.5, 0.0, 0.0))):
-        world.add(wsim.PbdBody(creature, rubber, name=name, position=at, angular_velocity=spin,
+        world.add(wsim.PbdBody(creature, rubber, tets="auto", name=name, position=at, angular_velocity=spin,
                                damping=0.01))
     world.add(wsim.PbdBody(trimesh.creation.icosphere(subdivisions=2, radius=0.08), rubber, tets="auto", name="pbd_ball",
                            position=(-0.3, 0.8, -0.02), damping=0.01))

@@ -266,6 +266,9 @@ def test_reconstruction_simulates_its_own_body():
     world.add_collider(wsim.GroundPlane())
     sim = world.add(wsim.PbdBody(sphere, **kw))
     recon = world.add(wsim.PbdReconstruction(wsim.PbdBody(sphere, **kw), stride=1, frames=10, points_per_curve=6))
+    # read before the first step (the World attaches its colliders then): the start, and no
+    # private run without the ground (it used to simulate there and then, through the ground)
+    np.testing.assert_array_equal(recon.points(), sim.points())
     worst = 0.0
     simulated = [sim.points()]
     for _ in range(10):

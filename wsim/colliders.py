@@ -174,6 +174,7 @@ class MeshCollider(Collider):
             self._device_meshes[key] = wp.Mesh(
                 points=wp.array(self.vertices.astype(np.float32), dtype=wp.vec3, device=device),
                 indices=wp.array(self.faces.ravel().astype(np.int32), dtype=wp.int32, device=device),
+                support_winding_number=True,  # contact's inside test (kernels/mesh.py query_inside)
             )
         return self._device_meshes[key]
 

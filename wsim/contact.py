@@ -69,7 +69,8 @@ def points_inside(points: np.ndarray, V: np.ndarray, faces: np.ndarray, margin: 
     """``nearest_faces`` on the closed surface (V, faces) built for the query (a body's predicted
     surface changes every step)."""
     mesh = wp.Mesh(points=wp.array(V.astype(np.float32), dtype=wp.vec3, device=device),
-                   indices=wp.array(faces.astype(np.int32).ravel(), dtype=wp.int32, device=device))
+                   indices=wp.array(faces.astype(np.int32).ravel(), dtype=wp.int32, device=device),
+                   support_winding_number=True)
     reach = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
     return nearest_faces(mesh, points, reach, margin, device)
 

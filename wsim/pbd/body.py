@@ -698,7 +698,7 @@ class PbdBody(Body):
                     key=key, p0=wp.zeros(len(p0), dtype=wp.vec3, device=d), p1=wp.zeros(len(p0), dtype=wp.vec3, device=d),
                     prev=wp.zeros(len(p0), dtype=wp.vec3, device=d), cur=cur,
                     indices=indices,
-                    mesh=wp.Mesh(points=cur, indices=indices), friction=float(mu), reach=0.0,
+                    mesh=wp.Mesh(points=cur, indices=indices, support_winding_number=True), friction=float(mu), reach=0.0,
                     impulse=wp.zeros(len(p0), dtype=wp.vec3d, device=d)))
                 # how far from the surface a query looks (a particle deep inside is still found);
                 # fixed with the launches, which a CUDA graph records

@@ -58,7 +58,8 @@ def _build_mesh(body: PbdBody) -> None:
         faces = np.ascontiguousarray(body.model.faces, dtype=np.int32)
         body._contact_indices = wp.array(faces.ravel(), dtype=wp.int32, device=body._device)
     wp.copy(body._contact_points, body.x, count=n)
-    body._contact_mesh = wp.Mesh(points=body._contact_points, indices=body._contact_indices)
+    body._contact_mesh = wp.Mesh(points=body._contact_points, indices=body._contact_indices,
+                                 support_winding_number=True)
     x = body.x.numpy()[:n]
     # how far from its surface a query may look: a particle deep inside is still found
     body._contact_reach = float(np.linalg.norm(x.max(axis=0) - x.min(axis=0)))

@@ -265,6 +265,10 @@ class PbdReconstruction(Body):
         if self._device is None:
             raise InvalidParameter(f"reconstruction '{self.name}': add it to a World before reading its state")
         if self.state.frame == 0:
+            if self.recording is None:
+                # frame 0 is the source body's start: simulating it now, before the World has
+                # attached its colliders (first step), would record a body falling through them
+                return self._body.points() + self.offset
             self.evaluate(0)
         return self._out.numpy().astype(np.float64) + self.offset
 
