@@ -199,11 +199,13 @@ class EolBody(VertexImpulses, Body):
             ``eol_step.coriolis_matrix``) or "explicit" (forward Euler, the earlier scheme).
         hourglass: hourglass control of cells the material points under-integrate (a thin part's
             cells hold one or two of them), as a fraction of the shear modulus (0: off; see
-            ``eol_elastic.hourglass_forces``). Fully integrated cells get none. Off by default:
-            since the contact rows push thin parts out from both faces (``pushed_area``), the
-            landings it was added for (a bunny, a fish at 24-60 fps, boxes) complete without it,
-            and it doubled the amplitude decay of a breathing sphere (0.49/s against 0.26/s at
-            12 cells; README "EoL solids").
+            ``eol_elastic.hourglass_forces``). Fully integrated cells get none. It keeps the
+            nodes that hold a sliver of material from ringing: a ball resting on the ground 5 s
+            has them at 0.04 m/s with it and 1.9 m/s without (``tools/study_eol.py``). Since the
+            contact rows push thin parts out from both faces (``pushed_area``) the landings do
+            not need it (a bunny, a fish at 24-60 fps, boxes complete without). It doubles the
+            amplitude decay of a breathing sphere (0.49/s against 0.26/s at 12 cells; README
+            "EoL solids").
         friction: Coulomb coefficient against other bodies (the larger of the two bodies' values;
             None: ``wsim.contact.DEFAULT_FRICTION`` unless the other gives one). Contact with the
             World's colliders is frictionless, as in the paper.
@@ -246,7 +248,7 @@ class EolBody(VertexImpulses, Body):
         velocity_field: Callable[[np.ndarray], Any] | None = None,
         coriolis: str = "midpoint",
         friction: float | None = None,
-        hourglass: float = 0.0,
+        hourglass: float = 0.1,
     ) -> None:
         super().__init__(name, velocity, angular_velocity)
         p = f"body '{name}'"
