@@ -181,6 +181,16 @@ def eulerian_residual(
 
 
 @wp.kernel
+def remove_lagrangian_part(v: wp.array(dtype=wp.vec3d), mass: wp.array(dtype=wp.float64), grid: Grid, L: wp.mat33d,
+                           c: wp.vec3d):
+    """v_s -= L y_s + c at the nodes with mass: the residual loses the Lagrangian field (L, c) that
+    the least-squares split (Eq. 23) finds in it, so that it carries no momentum of its own."""
+    s = wp.tid()
+    if mass[s] > wp.float64(0.0):
+        v[s] = v[s] - L * node_position(s, grid) - c
+
+
+@wp.kernel
 def combine(v0: wp.array(dtype=wp.vec3d), v1: wp.array(dtype=wp.vec3d), dt: wp.float64, out: wp.array(dtype=wp.vec3d)):
     """v* = v*_0 + dt v*_1 (Eq. 32c)."""
     s = wp.tid()
