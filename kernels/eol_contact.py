@@ -202,15 +202,17 @@ def mesh_rows(
     G: wp.mat33d,
     g: wp.vec3d,
     collider: int,
+    closed: int,
     acc: wp.array2d(dtype=wp.float64),
     flag: wp.array(dtype=wp.int32),
 ):
-    """Samples inside a closed collider mesh (winding-sign query) moving with v_B = G x + g."""
+    """Samples inside a collider mesh (``query_inside``; ``closed`` 0: an open, one-sided sheet)
+    moving with v_B = G x + g."""
     i = wp.tid()
     yp, x, an = sample_world(surf, i)
     pl = to_local * wp.vec4d(x[0], x[1], x[2], wp.float64(1.0))
     p = wp.vec3(float(pl[0]), float(pl[1]), float(pl[2]))
-    q = query_inside(mesh, p, max_dist)
+    q = query_inside(mesh, p, max_dist, closed)
     if q.result and q.sign < 0.0:
         closest = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
         n = wp.mesh_eval_face_normal(mesh, q.face)
@@ -286,7 +288,7 @@ def surface_rows(
     hit_row[i] = -1
     yp, x, an = sample_world(surf, i)
     p = wp.vec3(float(x[0]), float(x[1]), float(x[2]))
-    q = query_inside(mesh, p, max_dist)
+    q = query_inside(mesh, p, max_dist, 1)
     if q.result and q.sign < 0.0:
         closest = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
         n = wp.mesh_eval_face_normal(mesh, q.face)

@@ -91,12 +91,13 @@ def outside_margin(
 
 
 @wp.kernel
-def mesh_depth(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), max_dist: float, depth: wp.array(dtype=wp.float32)):
+def mesh_depth(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), max_dist: float, closed: int,
+               depth: wp.array(dtype=wp.float32)):
     """Distance from each point (collider-local coordinates) to the collider's surface if the point
-    is inside the closed mesh (winding-sign query, as the contact rows use), else 0."""
+    is inside the mesh (``query_inside``, as the contact rows ask), else 0."""
     i = wp.tid()
     p = points[i]
     depth[i] = wp.float32(0.0)
-    q = query_inside(mesh, p, max_dist)
+    q = query_inside(mesh, p, max_dist, closed)
     if q.result and q.sign < 0.0:
         depth[i] = wp.length(wp.mesh_eval_position(mesh, q.face, q.u, q.v) - p)

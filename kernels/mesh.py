@@ -22,17 +22,21 @@ _TWO_PI = wp.constant(wp.float64(2.0 * math.pi))
 
 
 @wp.func
-def query_inside(mesh: wp.uint64, p: wp.vec3, max_dist: float) -> wp.MeshQueryPoint:
-    """The nearest point of a closed surface to p within ``max_dist`` (face, u, v; ``result``
-    false where none is that near) and p's side of it, sign < 0 inside, by the generalized winding
-    number (the mesh built with ``support_winding_number=True``).
+def query_inside(mesh: wp.uint64, p: wp.vec3, max_dist: float, closed: int) -> wp.MeshQueryPoint:
+    """The nearest point of a surface to p within ``max_dist`` (face, u, v; ``result`` false where
+    none is that near) and p's side of it, sign < 0 inside. A closed surface (``closed`` != 0; the
+    mesh built with ``support_winding_number=True``) by the generalized winding number; an open one
+    (a terrain sheet collider, one-sided) by the normal of the nearest face, as the winding number
+    of an open sheet is about 1/2 on either side near it.
 
     Every contact kernel asks this. The cheaper sign of the nearest face's normal misjudges points
     near sharp edges and thin parts (a fin, a box's edge): a point outside was taken as inside and
     projected onto the surface from as far as the query reached. Two tetrahedral PBD fish and a PBD
     ball of the showcase reached 400-1600 m/s within a frame that way, and at 40 substeps a lone
     fish under the ball 111 m/s (issue 18); with the winding number they stay below 4 m/s."""
-    return wp.mesh_query_point_sign_winding_number(mesh, p, max_dist, _WINDING_ACCURACY, 0.5)
+    if closed != 0:
+        return wp.mesh_query_point_sign_winding_number(mesh, p, max_dist, _WINDING_ACCURACY, 0.5)
+    return wp.mesh_query_point_sign_normal(mesh, p, max_dist)
 
 
 @wp.kernel
@@ -46,7 +50,7 @@ def classify(
     winding number, accuracy ``_WINDING_ACCURACY``); distance[i] = |points[i] - closest surface point|."""
     i = wp.tid()
     p = points[i]
-    q = query_inside(mesh, p, 1.0e30)
+    q = query_inside(mesh, p, 1.0e30, 1)
     inside[i] = wp.where(q.result and q.sign < 0.0, 1, 0)
     distance[i] = wp.length(p - wp.mesh_eval_position(mesh, q.face, q.u, q.v))
 
@@ -83,6 +87,7 @@ def nearest_face_points(
     points: wp.array(dtype=wp.vec3d),
     reach: float,
     margin: float,
+    closed: int,
     face: wp.array(dtype=int),
     bary: wp.array(dtype=wp.vec3d),
     normal: wp.array(dtype=wp.vec3d),
@@ -93,7 +98,7 @@ def nearest_face_points(
     i = wp.tid()
     c = points[i]
     p = wp.vec3(float(c[0]), float(c[1]), float(c[2]))
-    q = query_inside(mesh, p, reach)
+    q = query_inside(mesh, p, reach, closed)
     face[i] = -1
     if q.result:
         cl = wp.mesh_eval_position(mesh, q.face, q.u, q.v)

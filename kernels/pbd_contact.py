@@ -86,11 +86,11 @@ def ground_contact(
 
 
 @wp.func
-def surface_contact(mesh: wp.uint64, p: wp.vec3, max_dist: float, margin: float):
+def surface_contact(mesh: wp.uint64, p: wp.vec3, max_dist: float, margin: float, closed: int):
     """Nearest point s of a closed, outward surface mesh to p: (depth = margin - signed distance,
     s, the outward normal n there, the face, the barycentric weights of s on it). depth <= 0: no
     contact (also when nothing is within ``max_dist``)."""
-    q = query_inside(mesh, p, max_dist)
+    q = query_inside(mesh, p, max_dist, closed)
     if not q.result:
         return -1.0, p, wp.vec3(0.0), int(0), wp.vec3(0.0)
     s = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
@@ -123,6 +123,7 @@ def mesh_contact(
     margin: float,
     max_dist: float,
     mu: float,
+    closed: int,
 ):
     """Triangle-mesh collider posed by transforms[step] (local -> world; transforms[step - 1] at the substep start).
 
@@ -139,7 +140,7 @@ def mesh_contact(
     Minv = inverses[step]
     p_world = x_pred[i] + dx[i]
     p = wp.transform_point(Minv, p_world)
-    depth, s, n, face, bary = surface_contact(mesh, p, max_dist, margin)
+    depth, s, n, face, bary = surface_contact(mesh, p, max_dist, margin, closed)
     if depth <= 0.0:
         return
     target = wp.transform_point(M, s + n * margin)
@@ -193,7 +194,7 @@ def body_contact(
     i = wp.tid()
     w_p = inv_mass[i]
     p = x_pred[i] + dx[i]
-    depth, s, n, face, b = surface_contact(mesh, p, max_dist, margin)
+    depth, s, n, face, b = surface_contact(mesh, p, max_dist, margin, 1)
     if depth <= 0.0:
         return
     tri = face_vertices(mesh, face)
@@ -247,7 +248,7 @@ def moving_surface_contact(
     if w_p == 0.0:
         return
     p = x_pred[i] + dx[i]
-    depth, s, n, face, b = surface_contact(mesh, p, max_dist, margin)
+    depth, s, n, face, b = surface_contact(mesh, p, max_dist, margin, 1)
     if depth <= 0.0:
         return
     tri = face_vertices(mesh, face)

@@ -203,6 +203,33 @@ def test_pbd_ball_landing_on_a_thin_tetrahedral_fish_does_not_fling_it(device):
     assert b.center_of_mass()[1] > a.center_of_mass()[1]  # the ball on top of the fish or beside it
 
 
+def test_bodies_rest_on_an_open_terrain_sheet():
+    """An open mesh collider (a terrain sheet, normals up) is one-sided. Inside/outside by the
+    winding number does not hold for it (about 1/2 on either side near the sheet: bodies fell
+    through), so an open collider keeps the nearest face's normal (``query_inside``). A PBD ball
+    and an EoL ball dropped on it come to rest on it."""
+    g = np.linspace(-1.0, 1.0, 5)
+    X, Z = np.meshgrid(g, g, indexing="ij")
+    V = np.column_stack([X.ravel(), np.zeros(X.size), Z.ravel()])
+    F = []
+    for i in range(4):
+        for k in range(4):
+            a, b, c, d = 5 * i + k, 5 * i + k + 1, 5 * (i + 1) + k, 5 * (i + 1) + k + 1
+            F += [[a, b, d], [a, d, c]]  # (b - a) x (d - a) points up (+y)
+    sheet = trimesh.Trimesh(V, np.array(F), process=False)
+    assert np.all(sheet.face_normals[:, 1] > 0.99)
+    w = wsim.World(fps=60, gravity=(0.0, -G, 0.0), device="cpu")
+    w.add_collider(wsim.MeshCollider(sheet, name="terrain"))
+    ball = trimesh.creation.icosphere(subdivisions=1, radius=0.1)
+    p = w.add(wsim.PbdBody(ball, PBD_MAT, tets="auto", name="pbd", position=(-0.4, 0.3, 0.0)))
+    e = w.add(wsim.EolBody(ball, EOL_MAT, resolution=6, damping=20.0, name="eol", position=(0.4, 0.3, 0.0)))
+    for _ in range(40):
+        w.step()
+    for b in (p, e):
+        assert b.points()[:, 1].min() > -0.02, b.name  # on the sheet, not through it
+        assert b.points()[:, 1].mean() > 0.05, b.name  # its centre above the sheet (it may still bounce)
+
+
 @pytest.mark.skipif(not wp.is_cuda_available(), reason="needs CUDA")
 def test_pbd_lockstep_graph_matches_direct_launches():
     """On CUDA the lockstep frame is recorded once and replayed: same motion as launching it every

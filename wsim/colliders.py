@@ -132,7 +132,9 @@ class MeshCollider(Collider):
     """A triangle-mesh collider, static (``transform`` a 4x4 matrix or None) or kinematic
     (``transform`` a function t [s] -> 4x4 local-to-world matrix, rigid).
 
-    The mesh should be closed and outward-oriented: inside/outside comes from its normals.
+    A closed mesh must be outward-oriented; contact tells its inside by the generalized winding
+    number (``kernels/mesh.py`` ``query_inside``). An open one (a terrain sheet) is one-sided: the
+    side its normals point away from is inside.
     """
 
     def __init__(
@@ -148,6 +150,7 @@ class MeshCollider(Collider):
         # an open one (a terrain sheet) is one-sided, on the side its normals point to
         closed = len(self.faces) > 0 and not wmesh.has_boundary(self.faces)
         wmesh.check_surface(self.vertices, self.faces, name=f"collider '{name}'", closed=closed)
+        self.closed = closed
         if len(self.faces) == 0:
             raise InvalidParameter(f"collider '{name}': the mesh has no faces")
         self.friction = _check_friction(friction, name)
@@ -174,7 +177,7 @@ class MeshCollider(Collider):
             self._device_meshes[key] = wp.Mesh(
                 points=wp.array(self.vertices.astype(np.float32), dtype=wp.vec3, device=device),
                 indices=wp.array(self.faces.ravel().astype(np.int32), dtype=wp.int32, device=device),
-                support_winding_number=True,  # contact's inside test (kernels/mesh.py query_inside)
+                support_winding_number=self.closed,  # contact's inside test (kernels/mesh.py query_inside)
             )
         return self._device_meshes[key]
 

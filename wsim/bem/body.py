@@ -616,7 +616,8 @@ class BemBody(VertexImpulses, Body):
         col = self._surfaces[ci]
         M = self._surfaces.matrix(ci, t)
         local = (V - M[:3, 3]) @ np.linalg.inv(M[:3, :3]).T
-        hit, face, bary, nrm = nearest_faces(col.device_mesh(self._device), local, col.extent, margin, self._device)
+        hit, face, bary, nrm = nearest_faces(col.device_mesh(self._device), local, col.extent, margin, self._device,
+                                           closed=col.closed)
         keep = ~held[hit]
         hit, face, bary, nrm = hit[keep], face[keep], bary[keep], nrm[keep]
         closest = np.einsum("mk,mkd->md", bary, col.vertices[col.faces[face]]) @ M[:3, :3].T + M[:3, 3]

@@ -660,7 +660,7 @@ class EolBody(VertexImpulses, Body):
                 wp.launch(kl.mesh_depth, dim=len(x), device=self._device,
                           inputs=[col.device_mesh(self._device).id,
                                   wp.array(local.astype(np.float32), dtype=wp.vec3, device=self._device),
-                                  float(col.extent), out])
+                                  float(col.extent), int(col.closed), out])
                 depth = float(out.numpy().max())
             if depth > tol:
                 raise InvalidParameter(
@@ -1226,7 +1226,7 @@ class EolBody(VertexImpulses, Body):
                 G, g = self._surfaces.velocity(ci, self.state.time, max(1e-6, 1e-3 * self.state.dt_prev))
                 wp.launch(kc.mesh_rows, dim=surf.sample_face.shape[0], device=d,
                           inputs=[surf, col.device_mesh(d).id, wp.mat44d(*np.linalg.inv(M).ravel()),
-                                  _mat(M[:3, :3]), float(col.extent), _mat(G), wp.vec3d(*g), ci,
+                                  _mat(M[:3, :3]), float(col.extent), _mat(G), wp.vec3d(*g), ci, int(col.closed),
                                   self._row_acc, self._row_flag])
         t0, t1 = self._span
         f = self._fraction = min(max((self.state.time - t0) / max(t1 - t0, 1e-300), 0.0), 1.0)

@@ -72,6 +72,7 @@ class _DeviceMeshCollider:
     host_transforms: np.ndarray  # (S + 1, 4, 4) float32 staging
     host_inverses: np.ndarray
     max_dist: float
+    closed: int  # 0: an open sheet, one-sided (kernels/mesh.py query_inside)
 
 
 @dataclass
@@ -521,6 +522,7 @@ class PbdBody(Body):
                         host_transforms=np.zeros((substeps + 1, 4, 4), dtype=np.float32),
                         host_inverses=np.zeros((substeps + 1, 4, 4), dtype=np.float32),
                         max_dist=2.0 * c.extent + 10.0 * self.contact_margin + 1.0,
+                        closed=int(c.closed),
                     )
                 )
 
@@ -667,7 +669,7 @@ class PbdBody(Body):
             wp.launch(
                 kc.mesh_contact,
                 dim=n,
-                inputs=[self.dx, self.dxc, self.x_prev, self.x_pred, self.inv_mass, dc.mesh.id, dc.transforms, dc.inverses, s, self.contact_margin, dc.max_dist, dc.friction],
+                inputs=[self.dx, self.dxc, self.x_prev, self.x_pred, self.inv_mass, dc.mesh.id, dc.transforms, dc.inverses, s, self.contact_margin, dc.max_dist, dc.friction, dc.closed],
             )
         for ms in self._moving:
             wp.launch(
