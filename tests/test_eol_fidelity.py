@@ -230,7 +230,7 @@ def test_slab_landing_edge_first_on_a_frictionless_plane_gains_no_sideways_momen
     which the next split handed to the frame: 0.58 kg m/s sideways in two frames, then a slide at
     0.38 m/s (an independent check). The residual is now kept free of momentum after advection
     (``EolBody._restore_momentum``): the slab gains 13x less sideways momentum (0.04 against 0.56
-    kg m/s in 8 frames: 0.5 % of the vertical contact impulse, from a source not yet found) and
+    kg m/s in 8 frames: 0.5 % of the vertical contact impulse; likely the re-lumped masses) and
     each frame's momentum change matches gravity plus contact within 1 % of the contact impulse."""
     w = wsim.World(fps=30, gravity=(0.0, -9.81, 0.0), device="cpu")
     w.add_collider(wsim.GroundPlane(0.0, friction=0.0))
