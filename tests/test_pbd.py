@@ -361,3 +361,22 @@ def test_cache_key_tells_surface_from_interior(tmp_path):
     a = wsim.PbdBody((pts[:1], none), interior_points=pts[1:], name="a", **kw)
     b = wsim.PbdBody((pts, none), name="b", **kw)
     assert (a.model.n_surface, b.model.n_surface) == (1, 3)
+
+
+def test_rotation_turns_the_particles_about_their_centre_of_mass():
+    """``rotation=`` (as EolBody and BemBody take it): the same particles as a mesh turned about
+    the particles' centre of mass beforehand, the same masses, and a bad matrix named."""
+    box = trimesh.creation.box(extents=(0.3, 0.1, 0.2))
+    R = trimesh.transformations.rotation_matrix(0.7, (1.0, 2.0, 0.5))[:3, :3]
+    a = wsim.PbdBody(box, name="turned", rotation=R, position=(0.0, 1.0, 0.0), tets="auto", cache=False)
+    plain = wsim.PbdBody(box, name="plain", tets="auto", cache=False)
+    com = plain.masses @ plain.rest_points / plain.masses.sum()
+    expected = (plain.rest_points - com) @ R.T + com + (0.0, 1.0, 0.0)
+    np.testing.assert_allclose(a.rest_points, expected, atol=1e-12)
+    np.testing.assert_array_equal(a.masses, plain.masses)
+    w = wsim.World(fps=60, gravity=(0.0, 0.0, 0.0), device="cpu")
+    w.add(a)
+    w.step()  # at rest without gravity: the rotated rest shape is unstrained
+    assert np.abs(a.velocities()).max() < 1e-4
+    with pytest.raises(wsim.InvalidParameter, match="body 'bad': rotation"):
+        wsim.PbdBody(box, name="bad", rotation=np.diag([1.0, 1.0, -1.0]))

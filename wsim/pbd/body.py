@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 import warp as wp
@@ -32,7 +32,7 @@ from wsim.cache import OperatorCache
 from wsim.colliders import Surfaces
 from wsim.errors import InvalidParameter, SimulationDiverged
 from wsim.handles import Handle, as_indices
-from wsim.validate import as_vec3, finite_number, positive_int
+from wsim.validate import as_rotation, as_vec3, finite_number, positive_int
 from wsim.kernels import pbd_contact as kc
 from wsim.kernels import pbd as kp
 from wsim.materials import ElasticMaterial
@@ -101,6 +101,9 @@ class PbdBody(Body):
         material: elastic material (default: E = 1e5 Pa, nu = 0.3, rho = 1000 kg/m^3).
         name: USD prim name.
         position: translation applied to the mesh (and to ``interior_points``) [m].
+        rotation: (3, 3) rotation applied to the particles about their centre of mass (default
+            identity; like ``EolBody`` and ``BemBody``). The model (and its cache entry) is the
+            unrotated one: rest lengths, angles and volumes do not change with a rotation.
         velocity, angular_velocity: initial motion about the centre of mass [m/s], [rad/s].
         tets: None (surface-only body), "auto" (tetrahedralize the surface), or (T, 4) indices into
             the mesh vertices followed by ``interior_points``.
@@ -148,6 +151,7 @@ class PbdBody(Body):
         *,
         name: str = "pbd_body",
         position: Sequence[float] = (0.0, 0.0, 0.0),
+        rotation: Any = None,
         velocity: Sequence[float] = (0.0, 0.0, 0.0),
         angular_velocity: Sequence[float] = (0.0, 0.0, 0.0),
         tets: np.ndarray | str | None = None,
@@ -213,6 +217,7 @@ class PbdBody(Body):
         spring_compliance = finite_number(spring_compliance, f"body '{name}': spring_compliance [m/N]")
 
         offset = as_vec3(position, f"body '{name}': position")
+        R0 = as_rotation(rotation, f"body '{name}': rotation")
         points = vertices
         if interior_points is not None:
             q = np.asarray(interior_points, dtype=np.float64).reshape(-1, 3)
@@ -279,7 +284,11 @@ class PbdBody(Body):
                 build=build,
             )
         self.model: PbdModel = PbdModel.from_arrays(arrays)
-        self._rest = self.model.rest_points + offset
+        rest = self.model.rest_points
+        if rotation is not None:
+            com = self.model.mass @ rest / self.model.mass.sum()
+            rest = (rest - com) @ R0.T + com
+        self._rest = rest + offset
         n = self.model.n_particles
 
         kinematic = np.zeros(n, dtype=bool)
