@@ -13,7 +13,7 @@ was delivered (a force with no node with mass in its cell is dropped and not cou
 from __future__ import annotations
 
 import warp as wp
-from wsim.kernels.mesh import query_inside
+
 from wsim.kernels.eol_grid import (
     Grid,
     cell_of,
@@ -21,6 +21,7 @@ from wsim.kernels.eol_grid import (
     grid_coordinates,
     local_coordinates,
 )
+from wsim.kernels.mesh import query_inside
 
 
 @wp.kernel

@@ -87,9 +87,10 @@ def ground_contact(
 
 @wp.func
 def surface_contact(mesh: wp.uint64, p: wp.vec3, max_dist: float, margin: float, closed: int):
-    """Nearest point s of a closed, outward surface mesh to p: (depth = margin - signed distance,
-    s, the outward normal n there, the face, the barycentric weights of s on it). depth <= 0: no
-    contact (also when nothing is within ``max_dist``)."""
+    """Nearest point s of an outward surface mesh to p: (depth = margin - signed distance, s, the
+    outward normal n there, the face, the barycentric weights of s on it); inside by
+    ``query_inside`` (``closed`` 0: an open, one-sided collider sheet). depth <= 0: no contact
+    (also when nothing is within ``max_dist``)."""
     q = query_inside(mesh, p, max_dist, closed)
     if not q.result:
         return -1.0, p, wp.vec3(0.0), int(0), wp.vec3(0.0)

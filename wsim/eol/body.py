@@ -1149,17 +1149,19 @@ class EolBody(VertexImpulses, Body):
         return lagrangian_fields(self.lagrangian, C, B0), lagrangian_fields(self.lagrangian, C, B1)
 
     def _restore_momentum(self) -> None:
-        """Keep the Eulerian velocity free of momentum after advection (Lagrangian frames only).
+        """Keep the Eulerian velocity free of momentum after advection (Lagrangian frames, the
+        mass-weighted split).
 
-        The split (Eqs. 23-25) leaves the residual v* with no momentum of its own (mass-weighted:
-        its linear and, rigid, angular momentum, or affine moments, are zero), so the frame carries
-        the body's. Advecting v* semi-Lagrangian and re-lumping the masses from the tracked material
+        The mass-weighted split (Eqs. 23-25) leaves the residual v* with no momentum of its own (its
+        linear and, rigid, angular momentum, or affine moments, are zero), so the frame carries
+        the body's. (The paper's uniform split leaves the residual some momentum of its own, which
+        this would remove: that split is left as it was.) Advecting v* semi-Lagrangian and re-lumping the masses from the tracked material
         points break that: at an impact, where v* varies sharply, the residual gains momentum that
         no force gave it, and the next split hands it to the frame. A slab landing edge-first on a
         frictionless plane (a purely vertical contact impulse) gained 0.58 kg m/s sideways in two
         frames and slid off at 0.38 m/s (an independent check; issue 16). The Lagrangian part the
         split finds in the advected v, with the new masses, is that error: it is removed."""
-        if self.lagrangian == "eulerian":
+        if self.lagrangian == "eulerian" or self.split != "mass":
             return
         C, B, _ = velocity_moments(self._grid, self.state.v, self.state.v, self._mass, True, self._chunks,
                                    self._moments, self._device)
