@@ -9,6 +9,7 @@ from wsim.eol.grid import EolGrid
 from wsim.errors import InvalidParameter
 from wsim.kernels import eol_advect as ka
 from wsim.kernels.eol_grid import Grid, grid_struct
+from wsim.launch import Launcher, launch_on
 
 SCHEMES = ("semi-lagrangian", "bfecc")
 
@@ -20,7 +21,8 @@ def check_scheme(scheme: str, what: str = "advection") -> str:
 
 
 def advect_arrays(q: wp.array, v: wp.array, out: wp.array, grid: Grid, dt: float, scheme: str,
-                  scratch: tuple[wp.array, wp.array] | None, device, limit: bool = True) -> None:
+                  scratch: tuple[wp.array, wp.array] | None, device, limit: bool = True,
+                  launcher: Launcher | None = None) -> None:
     """out = q advected by v over dt [s]; 3-D vec3d node arrays on ``grid`` (a ``Grid`` struct;
     ``out`` must not alias ``q``).
 
@@ -33,29 +35,29 @@ def advect_arrays(q: wp.array, v: wp.array, out: wp.array, grid: Grid, dt: float
     shape = q.shape
     dtw = wp.float64(dt)
     if scheme == "semi-lagrangian":
-        wp.launch(ka.semi_lagrangian, dim=shape, device=device, inputs=[q, v, grid, dtw, out])
+        launch_on(device, launcher, ka.semi_lagrangian, shape, [q, v, grid, dtw, out])
         return
     fwd, back = scratch  # type: ignore[misc]
-    wp.launch(ka.semi_lagrangian, dim=shape, device=device, inputs=[q, v, grid, dtw, fwd])
-    wp.launch(ka.semi_lagrangian, dim=shape, device=device, inputs=[fwd, v, grid, wp.float64(-dt), back])
-    wp.launch(ka.bfecc_combine, dim=shape, device=device, inputs=[q, back, fwd])
+    launch_on(device, launcher, ka.semi_lagrangian, shape, [q, v, grid, dtw, fwd])
+    launch_on(device, launcher, ka.semi_lagrangian, shape, [fwd, v, grid, wp.float64(-dt), back])
+    launch_on(device, launcher, ka.bfecc_combine, shape, [q, back, fwd])
     if limit:
-        wp.launch(ka.semi_lagrangian_limited, dim=shape, device=device, inputs=[fwd, q, v, grid, dtw, out])
+        launch_on(device, launcher, ka.semi_lagrangian_limited, shape, [fwd, q, v, grid, dtw, out])
     else:
-        wp.launch(ka.semi_lagrangian, dim=shape, device=device, inputs=[fwd, v, grid, dtw, out])
+        launch_on(device, launcher, ka.semi_lagrangian, shape, [fwd, v, grid, dtw, out])
 
 
 def extend_reference_map(z: wp.array, mass: wp.array, h: float, layers: int, layer: wp.array, G: wp.array,
-                         device) -> None:
+                         device, launcher: Launcher | None = None) -> None:
     """Continue the reference map z (3-D vec3d node array, in place) from the nodes with material
     (``mass`` > 0, same shape) into ``layers`` layers of empty nodes around them, each node taking the
     mean first-order prediction z_n + G_n (y_s - y_n) of its neighbours in the layers before
     (``eol_advect.extend_reference_map``): an affine map is continued exactly. ``layer`` (int32) and
     ``G`` (mat33d), shaped like z, are scratch."""
     shape = z.shape
-    wp.launch(ka.reference_map_gradient, dim=shape, device=device, inputs=[z, mass, wp.float64(h), layer, G])
+    launch_on(device, launcher, ka.reference_map_gradient, shape, [z, mass, wp.float64(h), layer, G])
     for known in range(1, layers + 1):
-        wp.launch(ka.extend_reference_map, dim=shape, device=device, inputs=[z, layer, G, wp.float64(h), known])
+        launch_on(device, launcher, ka.extend_reference_map, shape, [z, layer, G, wp.float64(h), known])
 
 
 def advect(grid: EolGrid, q: np.ndarray, v: np.ndarray, dt: float, scheme: str = "semi-lagrangian",

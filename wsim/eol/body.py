@@ -56,6 +56,7 @@ from wsim.kernels import eol_loads as kl
 from wsim.kernels import eol_plastic as kp
 from wsim.kernels import eol_step as ks
 from wsim.kernels.eol_grid import grid_struct
+from wsim.launch import Launcher
 from wsim.materials import ElasticMaterial
 from wsim.rigid import advance_pose, cross_matrix, rigid_fit
 from wsim.validate import as_rotation, as_vec3, finite_number, positive_int
@@ -637,10 +638,10 @@ class EolBody(VertexImpulses, Body):
         self._tmp.zero_()
         applied = wp.zeros(1, dtype=wp.vec3d, device=d)
         for y, f_world, surface in work:
-            wp.launch(kl.scatter_point_forces, dim=len(f_world), device=d,
-                      inputs=[y, wp.array(f_world @ A, dtype=wp.vec3d, device=d), self._mass.reshape(shape),
+            self._launch(kl.scatter_point_forces, len(f_world),
+                      [y, wp.array(f_world @ A, dtype=wp.vec3d, device=d), self._mass.reshape(shape),
                               self._grid, surface, self._tmp.reshape(shape), applied])
-        wp.launch(ks.add_acceleration, dim=self.grid.n_nodes, device=d, inputs=[self._tmp, self._mass, self._a])
+        self._launch(ks.add_acceleration, self.grid.n_nodes, [self._tmp, self._mass, self._a])
         self._load_force = A @ np.array(applied.numpy()[0])
 
     def _check_initial_overlap(self) -> None:
@@ -657,8 +658,8 @@ class EolBody(VertexImpulses, Body):
                 M = self._surfaces.matrix(ci, self.state.time)
                 local = (x - M[:3, 3]) @ np.linalg.inv(M[:3, :3]).T
                 out = wp.zeros(len(x), dtype=wp.float32, device=self._device)
-                wp.launch(kl.mesh_depth, dim=len(x), device=self._device,
-                          inputs=[col.device_mesh(self._device).id,
+                self._launch(kl.mesh_depth, len(x),
+                          [col.device_mesh(self._device).id,
                                   wp.array(local.astype(np.float32), dtype=wp.vec3, device=self._device),
                                   float(col.extent), int(col.closed), out])
                 depth = float(out.numpy().max())
@@ -704,6 +705,7 @@ class EolBody(VertexImpulses, Body):
             dt_prev=self.dt_elastic,
         )
         self._device = device
+        self._launch = Launcher(device)  # the step's launches, replayed (``wsim.launch``)
         self._allocate_grid_arrays()
         self._energy = wp.zeros(1, dtype=wp.float64, device=d)
         self._chunks = ks.CHUNKS_CUDA if d.is_cuda else ks.CHUNKS_CPU
@@ -777,6 +779,7 @@ class EolBody(VertexImpulses, Body):
         st.v = wp.array(v, dtype=wp.vec3d, device=d)
         st.grid_grown = grown.copy()
         st.active_rows = np.zeros(0, dtype=np.int64)
+        self._launch.clear()  # the recorded launches hold the old grid's arrays
         self._allocate_grid_arrays()
         if self._surface is not None:  # rows laid out on the new grid
             self._contact_slots(self._row_groups, regrid=True)
@@ -818,7 +821,6 @@ class EolBody(VertexImpulses, Body):
         u = u + self.initial_velocity + np.cross(self.initial_angular_velocity, x[has] - st.T)
         w = np.zeros((self.grid.n_nodes, 3))
         w[has] = u @ self._axes()  # world -> velocity axes (rigid: body axes)
-        d = self._device
         self._w.assign(w)
         self._a.zero_()
         if self.lagrangian == "eulerian":
@@ -827,8 +829,8 @@ class EolBody(VertexImpulses, Body):
         (L0, c0), _ = self._split(self._w, self._a)
         self._vmax.zero_()
         zero = wp.vec3d()
-        wp.launch(ks.eulerian_residual, dim=self._chunks, device=d,
-                  inputs=[self._w, self._a, self._mass, self._grid, _mat(L0), wp.vec3d(*c0), _mat(np.zeros((3, 3))),
+        self._launch(ks.eulerian_residual, self._chunks,
+                  [self._w, self._a, self._mass, self._grid, _mat(L0), wp.vec3d(*c0), _mat(np.zeros((3, 3))),
                           zero, _mat(np.linalg.inv(self._F_L())), self._chunks, self._v0, self._v1, self._vmax])
         wp.copy(st.v, self._v0)
         if self.lagrangian == "rigid":
@@ -940,8 +942,8 @@ class EolBody(VertexImpulses, Body):
         for ms in self._moving:
             if ms.mu > 0.0:  # friction's reference motion
                 ms.G, ms.g = rigid_fit(ms.p0_host, ms.p1_host, t1 - self.time)
-            wp.launch(kc.surface_velocity, dim=ms.p0.shape[0], device=self._device,
-                      inputs=[ms.p0, ms.p1, wp.float64(1.0 / max(t1 - self.time, 1e-300)), ms.velocity])
+            self._launch(kc.surface_velocity, ms.p0.shape[0],
+                      [ms.p0, ms.p1, wp.float64(1.0 / max(t1 - self.time, 1e-300)), ms.velocity])
         while self._failure is None and self.time < t1 - eps:
             cap = min(t1 - self.time, self.dt_elastic, self.dt_max or math.inf)
             self._step(cap)
@@ -980,16 +982,16 @@ class EolBody(VertexImpulses, Body):
         shape = self.grid.node_shape
         sample_forces(self._grid, self.state.z.reshape(shape), self.state.y_points, self._vol, self.state.Fp_inv,
                       self.plasticity is not None, self._F_L(), self.material, self._forces.reshape(shape),
-                      self._mass.reshape(shape), self._energy, self._device)
+                      self._mass.reshape(shape), self._energy, self._device, self._launch)
         if self._filled is not None:
             full = self.grid.h**3 if self.quadrature > 1 else 0.0  # one point per cell integrates no cell fully
             hourglass_forces(self._grid, self.state.z.reshape(shape), self.state.y_points, self._vol, full,
                              self._F_L(), self.hourglass * self.material.mu, self._filled,
-                             self._forces.reshape(shape), self._energy, self._device)
-        wp.copy(self._mass_real, self._mass)
+                             self._forces.reshape(shape), self._energy, self._device, self._launch)
+        self._launch.copy(self._mass_real, self._mass)
         if self._mass_floor > 0.0:
-            wp.launch(ks.floor_mass, dim=self.grid.n_nodes, device=self._device,
-                      inputs=[self._mass, wp.float64(self._mass_floor)])
+            self._launch(ks.floor_mass, self.grid.n_nodes,
+                      [self._mass, wp.float64(self._mass_floor)])
 
     def _step(self, cap: float) -> None:
         d = self._device
@@ -1002,8 +1004,8 @@ class EolBody(VertexImpulses, Body):
         g_axes = self._axes().T @ (self._gravity + self._body_acc)
         dt_guess = min(cap, 2.0 * st.dt_prev)  # the QP's guess of dt, and the Coriolis factor's
         gyro = ks.coriolis_matrix(L, dt_guess, self.coriolis == "midpoint")
-        wp.launch(ks.node_velocities, dim=n, device=d,
-                  inputs=[self.state.v, self._mass, self._forces, self._grid, _mat(L), wp.vec3d(*c),
+        self._launch(ks.node_velocities, n,
+                  [self.state.v, self._mass, self._forces, self._grid, _mat(L), wp.vec3d(*c),
                           _mat(self._F_L()), wp.vec3d(*g_axes), int(self.fictitious and self.lagrangian == "rigid"),
                           _mat(gyro), self._mass_real, self._w, self._a])
         if self._tractions or self._point_forces or self._coupling_load:
@@ -1011,11 +1013,11 @@ class EolBody(VertexImpulses, Body):
         if self.damping > 0.0:
             shape = self.grid.node_shape
             self._tmp.zero_()
-            wp.launch(ks.viscous_forces, dim=len(self._volumes), device=d,
-                      inputs=[self._w.reshape(shape), self._grid, self.state.y_points, self._vol,
+            self._launch(ks.viscous_forces, len(self._volumes),
+                      [self._w.reshape(shape), self._grid, self.state.y_points, self._vol,
                               _mat(np.linalg.inv(self._F_L())), wp.float64(self.damping), self._tmp.reshape(shape)])
-            wp.launch(ks.add_acceleration, dim=n, device=d,
-                      inputs=[self._tmp, self._mass, self._a])
+            self._launch(ks.add_acceleration, n,
+                      [self._tmp, self._mass, self._a])
         t = self._tick("forces", t)
         # 2-3. collision, assembly (S = J M^-1 J^T and the rows' rates on the device), QP
         m = n_active = 0
@@ -1028,8 +1030,8 @@ class EolBody(VertexImpulses, Body):
                 system, order = self._read_system(m)
             t = self._tick("assembly", t)
         if m:  # the unconstrained w, a, kept for a re-solve at a shorter dt
-            wp.copy(self._w_hat, self._w)
-            wp.copy(self._a_hat, self._a)
+            self._launch.copy(self._w_hat, self._w)
+            self._launch.copy(self._a_hat, self._a)
             # warm start from the rows active last step (a resting body: one or two iterations)
             guess = np.isin(system.ids, st.active_rows)
             guess = guess if guess.any() else None
@@ -1041,15 +1043,15 @@ class EolBody(VertexImpulses, Body):
         for attempt in range(4):
             if m:
                 if attempt:  # back to the unconstrained w, a
-                    wp.copy(self._w, self._w_hat)
-                    wp.copy(self._a, self._a_hat)
+                    self._launch.copy(self._w, self._w_hat)
+                    self._launch.copy(self._a, self._a_hat)
                 sol = solve_contact(system, dt_guess, active=guess)
                 st.active_rows = system.ids[sol.active]
                 lam = np.empty((m, 2))
                 lam[order] = np.column_stack([sol.lam0, sol.lam1])  # back to the device's row order
                 # w, a become w_0, w_1 in place (both are recomputed from the state every step)
-                wp.launch(kc.apply_impulses, dim=m, device=d,
-                          inputs=[self._surface, self._row_packed, self._row_ids, self._mass,
+                self._launch(kc.apply_impulses, m,
+                          [self._surface, self._row_packed, self._row_ids, self._mass,
                                   wp.array(lam, dtype=wp.float64, device=d), self._w, self._a])
                 if self._moving:
                     group = np.empty(m, dtype=np.int64)
@@ -1067,12 +1069,12 @@ class EolBody(VertexImpulses, Body):
                 # it, unless the grid has reached its limit (the body flies apart). Read back with
                 # the velocity maxima; a QP re-solve does not change it.
                 for slot, y in ((6, self.state.y_vertices), (7, self.state.y_points)):
-                    wp.launch(kl.outside_margin, dim=y.shape[0], device=d,
-                              inputs=[y, self._grid, wp.float64(1.0), self._vmax, slot])
+                    self._launch(kl.outside_margin, y.shape[0],
+                              [y, self._grid, wp.float64(1.0), self._vmax, slot])
             else:
                 self._vmax[:6].zero_()
-            wp.launch(ks.eulerian_residual, dim=self._chunks, device=d,
-                      inputs=[w0, w1, self._mass, self._grid, _mat(L0), wp.vec3d(*c0), _mat(L1),
+            self._launch(ks.eulerian_residual, self._chunks,
+                      [w0, w1, self._mass, self._grid, _mat(L0), wp.vec3d(*c0), _mat(L1),
                               wp.vec3d(*c1), _mat(np.linalg.inv(self._F_L())), self._chunks, self._v0, self._v1, self._vmax])
             vmax = self._vmax.numpy()
             if vmax[6] > 0.0 or vmax[7] > 0.0:
@@ -1100,7 +1102,7 @@ class EolBody(VertexImpulses, Body):
                 dt = min(dt, dt_guess)
                 break
             dt_guess, guess = dt, sol.active
-        wp.launch(ks.combine, dim=n, device=d, inputs=[self._v0, self._v1, wp.float64(dt), self._vstar])
+        self._launch(ks.combine, n, [self._v0, self._v1, wp.float64(dt), self._vstar])
         L_new, c_new = L0 + dt * L1, c0 + dt * c1
         if sol is not None:  # momentum the QP delivered: sum_s m_s (w_s - w_hat_s) = -J^T lambda
             st.contact_impulse = st.contact_impulse - self._axes() @ ((sol.lam0 + dt * sol.lam1) @ system.jsum)
@@ -1116,8 +1118,8 @@ class EolBody(VertexImpulses, Body):
         t = self._tick("track", t)
         if self.plasticity is not None:
             self._flowing.zero_()
-            wp.launch(kp.plastic_flow, dim=len(self._volumes), device=d,
-                      inputs=[self.state.z.reshape(self.grid.node_shape), self._grid, self.state.y_points,
+            self._launch(kp.plastic_flow, len(self._volumes),
+                      [self.state.z.reshape(self.grid.node_shape), self._grid, self.state.y_points,
                               _mat(self._F_L()), wp.float64(self.material.mu), wp.float64(self.material.lam),
                               wp.float64(self.plasticity.yield_stress), wp.float64(self.plasticity.flow_rate * dt),
                               self.state.Fp_inv, self._flowing])
@@ -1144,7 +1146,8 @@ class EolBody(VertexImpulses, Body):
             z = (np.zeros((3, 3)), np.zeros(3))
             return z, z
         mass_norm = self.split == "mass"
-        C, B0, B1 = velocity_moments(self._grid, w0, w1, self._mass, mass_norm, self._chunks, self._moments, self._device)
+        C, B0, B1 = velocity_moments(self._grid, w0, w1, self._mass, mass_norm, self._chunks, self._moments, self._device,
+                                     self._launch)
         self._m_total = C[3, 3] if mass_norm else float(np.sum(self._mass.numpy()))
         return lagrangian_fields(self.lagrangian, C, B0), lagrangian_fields(self.lagrangian, C, B1)
 
@@ -1164,33 +1167,33 @@ class EolBody(VertexImpulses, Body):
         if self.lagrangian == "eulerian" or self.split != "mass":
             return
         C, B, _ = velocity_moments(self._grid, self.state.v, self.state.v, self._mass, True, self._chunks,
-                                   self._moments, self._device)
+                                   self._moments, self._device, self._launch)
         if C[3, 3] <= 0.0:
             return
         L, c = lagrangian_fields(self.lagrangian, C, B)
-        wp.launch(ks.remove_lagrangian_part, dim=self.grid.n_nodes, device=self._device,
-                  inputs=[self.state.v, self._mass, self._grid, _mat(L), wp.vec3d(*c)])
+        self._launch(ks.remove_lagrangian_part, self.grid.n_nodes,
+                  [self.state.v, self._mass, self._grid, _mat(L), wp.vec3d(*c)])
 
     def _advect_fields(self, dt: float) -> None:
         d = self._device
         shape = self.grid.node_shape
         mass3 = self._mass.reshape(shape)
         # v* extended one layer into empty nodes, then advected by itself: v^{t+1}
-        wp.launch(ks.extrapolate, dim=shape, device=d, inputs=[self._vstar.reshape(shape), mass3, self._tmp.reshape(shape)])
+        self._launch(ks.extrapolate, shape, [self._vstar.reshape(shape), mass3, self._tmp.reshape(shape)])
         self._advect(self._tmp, self._tmp, dt, self.state.v)
-        wp.launch(ks.extrapolate, dim=shape, device=d, inputs=[self.state.v.reshape(shape), mass3, self._tmp.reshape(shape)])
-        wp.copy(self.state.v, self._tmp)
+        self._launch(ks.extrapolate, shape, [self.state.v.reshape(shape), mass3, self._tmp.reshape(shape)])
+        self._launch.copy(self.state.v, self._tmp)
         # z = y - u: Dz/Dt = 0, advected by v^{t+1}
-        wp.copy(self._tmp2, self.state.z)
+        self._launch.copy(self._tmp2, self.state.z)
         self._advect(self._tmp2, self.state.v, dt, self.state.z)
         # ... and continued into the empty nodes around the material (``extend_reference_map``)
         extend_reference_map(self.state.z.reshape(shape), self._mass_real.reshape(shape), self.grid.h,
-                             EXTEND_LAYERS, self._layer, self._G_ext, d)
+                             EXTEND_LAYERS, self._layer, self._G_ext, d, self._launch)
 
     def _advect(self, q: wp.array, vel: wp.array, dt: float, out: wp.array) -> None:
         shape = self.grid.node_shape
         advect_arrays(q.reshape(shape), vel.reshape(shape), out.reshape(shape), self._grid, dt,
-                      self.advection, self._advect_scratch, self._device)
+                      self.advection, self._advect_scratch, self._device, launcher=self._launch)
 
     def _integrate_pose(self, dt: float, L: np.ndarray, c: np.ndarray) -> None:
         st = self.state
@@ -1208,7 +1211,7 @@ class EolBody(VertexImpulses, Body):
         z3 = self.state.z.reshape(self.grid.node_shape)
         tol = self._positive["track_tol"] * self.grid.h
         for zs, ys in ((self._z_pts, self.state.y_points), (self._z_vert, self.state.y_vertices)):
-            track_points(self._grid, z3, zs, ys, tol, 20, ys, self._iters, self._device)
+            track_points(self._grid, z3, zs, ys, tol, 20, ys, self._iters, self._device, self._launch)
 
     # -- contact --------------------------------------------------------------------------------
     def _collide(self) -> None:
@@ -1220,23 +1223,23 @@ class EolBody(VertexImpulses, Body):
             plane = self._surfaces.plane(ci)
             if plane is not None:
                 nrm, height = plane
-                wp.launch(kc.plane_rows, dim=surf.sample_face.shape[0], device=d,
-                          inputs=[surf, wp.vec3d(*nrm), wp.float64(height), ci, self._row_acc, self._row_flag])
+                self._launch(kc.plane_rows, surf.sample_face.shape[0],
+                          [surf, wp.vec3d(*nrm), wp.float64(height), ci, self._row_acc, self._row_flag])
             else:
                 M = self._surfaces.matrix(ci, self.state.time)
                 # world velocity of the collider's material, over a short interval
                 G, g = self._surfaces.velocity(ci, self.state.time, max(1e-6, 1e-3 * self.state.dt_prev))
-                wp.launch(kc.mesh_rows, dim=surf.sample_face.shape[0], device=d,
-                          inputs=[surf, col.device_mesh(d).id, wp.mat44d(*np.linalg.inv(M).ravel()),
+                self._launch(kc.mesh_rows, surf.sample_face.shape[0],
+                          [surf, col.device_mesh(d).id, wp.mat44d(*np.linalg.inv(M).ravel()),
                                   _mat(M[:3, :3]), float(col.extent), _mat(G), wp.vec3d(*g), ci, int(col.closed),
                                   self._row_acc, self._row_flag])
         t0, t1 = self._span
         f = self._fraction = min(max((self.state.time - t0) / max(t1 - t0, 1e-300), 0.0), 1.0)
         for k, ms in enumerate(self._moving):  # other bodies' surfaces, where they are at this step
-            wp.launch(kc.place_surface, dim=ms.p0.shape[0], device=d, inputs=[ms.p0, ms.p1, wp.float64(f), ms.cur])
+            self._launch(kc.place_surface, ms.p0.shape[0], [ms.p0, ms.p1, wp.float64(f), ms.cur])
             ms.mesh.refit()
-            wp.launch(kc.surface_rows, dim=surf.sample_face.shape[0], device=d,
-                      inputs=[surf, ms.mesh.id, ms.velocity, float(ms.reach), len(self._colliders) + k,
+            self._launch(kc.surface_rows, surf.sample_face.shape[0],
+                      [surf, ms.mesh.id, ms.velocity, float(ms.reach), len(self._colliders) + k,
                               self._row_acc, self._row_flag, *ms.hits])
 
     def _friction(self, lam: np.ndarray, dt: float, group: np.ndarray) -> None:
@@ -1253,12 +1256,12 @@ class EolBody(VertexImpulses, Body):
             own = np.zeros((m, 2))
             own[:, 0] = np.where(group == len(self._colliders) + k, lam, 0.0)
             self._tmp.zero_()
-            wp.launch(kc.apply_impulses, dim=m, device=d,
-                      inputs=[self._surface, self._row_packed, self._row_ids, self._mass,
+            self._launch(kc.apply_impulses, m,
+                      [self._surface, self._row_packed, self._row_ids, self._mass,
                               wp.array(own, dtype=wp.float64, device=d), self._tmp, self._tmp])
             acc = wp.zeros(2, dtype=wp.vec3d, device=d)
-            wp.launch(kc.node_friction, dim=self.grid.n_nodes, device=d,
-                      inputs=[self._surface, self._tmp, self._mass, self._w, self._a, wp.float64(dt), _mat(ms.G),
+            self._launch(kc.node_friction, self.grid.n_nodes,
+                      [self._surface, self._tmp, self._mass, self._w, self._a, wp.float64(dt), _mat(ms.G),
                               wp.vec3d(*ms.g), wp.float64(ms.mu), acc])
             host = acc.numpy()
             ms.friction = self._axes() @ host[0]
@@ -1275,8 +1278,8 @@ class EolBody(VertexImpulses, Body):
         for ms in self._moving:
             ms.step_impulse.zero_()
             ms.step_weight.zero_()
-            wp.launch(kc.surface_reaction, dim=self._surface.sample_face.shape[0], device=d,
-                      inputs=[self._surface, ms.mesh.id, *ms.hits, self._row_of_slot, lam_d, ms.step_impulse,
+            self._launch(kc.surface_reaction, self._surface.sample_face.shape[0],
+                      [self._surface, ms.mesh.id, *ms.hits, self._row_of_slot, lam_d, ms.step_impulse,
                               ms.step_weight])
             J = ms.step_impulse.numpy()
             if ms.friction is not None and np.any(ms.friction):
@@ -1291,8 +1294,8 @@ class EolBody(VertexImpulses, Body):
     def _compact(self) -> int:
         """Pack the rows that received samples (their data stay on the device); their number m."""
         self._n_rows.zero_()
-        wp.launch(kc.compact_rows, dim=self._row_flag.shape[0], device=self._device,
-                  inputs=[self._row_acc, self._row_flag, self._n_rows, self._row_ids, self._row_packed,
+        self._launch(kc.compact_rows, self._row_flag.shape[0],
+                  [self._row_acc, self._row_flag, self._n_rows, self._row_ids, self._row_packed,
                           self._row_of_slot])
         return int(self._n_rows.numpy()[0])
 
@@ -1304,10 +1307,10 @@ class EolBody(VertexImpulses, Body):
         if self._system.shape[0] < size:
             self._system = wp.empty(2 * size, dtype=wp.float64, device=d)
         self._system[: m * m].zero_()
-        wp.launch(kc.row_products, dim=m, device=d, inputs=[self._surface, self._row_packed, self._row_ids, self._mass,
+        self._launch(kc.row_products, m, [self._surface, self._row_packed, self._row_ids, self._mass,
                                                            self._w, self._a, m, self._system])
-        wp.launch(kc.schur_complement, dim=(m, 27 * self._row_groups), device=d,
-                  inputs=[self._surface, self._row_packed, self._row_ids, self._row_of_slot, self._mass, m,
+        self._launch(kc.schur_complement, (m, 27 * self._row_groups),
+                  [self._surface, self._row_packed, self._row_ids, self._row_of_slot, self._mass, m,
                           self._system])
         ids = self._row_ids[:m].numpy().astype(np.int64)
         host = self._system[:size].numpy()

@@ -13,11 +13,12 @@ from wsim.eol.grid import EolGrid
 from wsim.kernels import eol_elastic as ke
 from wsim.kernels.eol_grid import Grid, grid_struct
 from wsim.materials import ElasticMaterial
+from wsim.launch import Launcher, launch_on
 
 
 def sample_forces(grid: Grid, z: wp.array, y: wp.array, volumes: wp.array, Fp_inv: wp.array, plastic: bool,
                   F_L: np.ndarray, material: ElasticMaterial, forces: wp.array, mass: wp.array, energy: wp.array,
-                  device) -> None:
+                  device, launcher: Launcher | None = None) -> None:
     """Zero ``forces``, ``mass`` (3-D node arrays of ``grid``) and ``energy`` (1,), then accumulate
     the nodal forces in F_L's axes [N], the lumped masses [kg] and the elastic energy [J] of the
     material points at intermediate positions ``y`` with material volumes ``volumes``. ``Fp_inv``
@@ -25,21 +26,22 @@ def sample_forces(grid: Grid, z: wp.array, y: wp.array, volumes: wp.array, Fp_in
     forces.zero_()
     mass.zero_()
     energy.zero_()
-    wp.launch(ke.sample_forces, dim=volumes.shape[0], device=device,
-              inputs=[z, grid, y, volumes, Fp_inv, int(bool(plastic)),
+    launch_on(device, launcher, ke.sample_forces, volumes.shape[0],
+              [z, grid, y, volumes, Fp_inv, int(bool(plastic)),
                       wp.mat33d(*np.asarray(F_L, dtype=np.float64).ravel()),
                       wp.float64(material.mu), wp.float64(material.lam), wp.float64(material.rho), forces, mass, energy])
 
 
 def hourglass_forces(grid: Grid, z: wp.array, y: wp.array, volumes: wp.array, full: float, F_L: np.ndarray,
-                     stiffness: float, filled: wp.array, forces: wp.array, energy: wp.array, device) -> None:
+                     stiffness: float, filled: wp.array, forces: wp.array, energy: wp.array, device,
+                     launcher: Launcher | None = None) -> None:
     """Add the hourglass control of under-integrated cells (kernel ``hourglass_forces``: force
     k F r_c / h^2 with k = ``stiffness`` V (1 - V / full), ``stiffness`` [Pa]) to ``forces`` [N] and its energy to
     ``energy`` [J]; ``filled`` (cells-shaped scratch) receives each cell's material volume [m^3]."""
     filled.zero_()
-    wp.launch(ke.cell_fill, dim=volumes.shape[0], device=device, inputs=[z, grid, y, volumes, filled])
-    wp.launch(ke.hourglass_forces, dim=filled.shape, device=device,
-              inputs=[z, filled, grid.h, wp.float64(full), wp.mat33d(*np.asarray(F_L, dtype=np.float64).ravel()),
+    launch_on(device, launcher, ke.cell_fill, volumes.shape[0], [z, grid, y, volumes, filled])
+    launch_on(device, launcher, ke.hourglass_forces, filled.shape,
+              [z, filled, grid.h, wp.float64(full), wp.mat33d(*np.asarray(F_L, dtype=np.float64).ravel()),
                       wp.float64(stiffness), forces, energy])
 
 

@@ -28,6 +28,7 @@ import warp as wp
 from wsim.kernels import eol_step as ks
 from wsim.kernels.eol_grid import Grid
 from wsim.rigid import cross_matrix
+from wsim.launch import Launcher, launch_on
 
 
 def momentum_split(M_C: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -76,11 +77,11 @@ def moments(y: np.ndarray, w: np.ndarray, weights: np.ndarray) -> tuple[np.ndarr
 
 
 def velocity_moments(grid: Grid, w0: wp.array, w1: wp.array, mass: wp.array, weighted: bool, chunks: int,
-                     out: wp.array, device) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     out: wp.array, device, launcher: Launcher | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """C (4, 4), B_0 and B_1 (3, 4) of the nodal velocities w0, w1 over the nodes with mass, node
     weight m_s (``weighted``) or 1, reduced on the device into ``out`` (40 float64) and read back."""
     out.zero_()
-    wp.launch(ks.velocity_moments, dim=chunks, device=device,
-              inputs=[w0, w1, mass, grid, int(bool(weighted)), chunks, out])
+    launch_on(device, launcher, ks.velocity_moments, chunks,
+              [w0, w1, mass, grid, int(bool(weighted)), chunks, out])
     mom = out.numpy()
     return mom[:16].reshape(4, 4), mom[16:28].reshape(3, 4), mom[28:40].reshape(3, 4)

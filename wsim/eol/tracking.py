@@ -13,16 +13,17 @@ import warp as wp
 from wsim.eol.grid import EolGrid
 from wsim.kernels import eol_track as kt
 from wsim.kernels.eol_grid import Grid, grid_struct
+from wsim.launch import Launcher, launch_on
 
 
 def track_points(grid: Grid, z_field: wp.array, z_points: wp.array, guess: wp.array, tol: float, max_iter: int,
-                 out: wp.array, iterations: wp.array, device) -> None:
+                 out: wp.array, iterations: wp.array, device, launcher: Launcher | None = None) -> None:
     """Algorithm 2 on the device: ``out`` (P,) the intermediate positions y with z(y) = z_points to
     |z(y) - z_p| < ``tol`` [m] (or ``max_iter`` Newton steps) in the nodal field ``z_field`` (3-D, on
     ``grid``), starting from ``guess`` (may be ``out`` itself: each thread reads its guess first);
     Newton iterations per point into ``iterations`` (at least P long)."""
-    wp.launch(kt.track_surface, dim=z_points.shape[0], device=device,
-              inputs=[z_field, grid, z_points, guess, wp.float64(tol), int(max_iter), out, iterations])
+    launch_on(device, launcher, kt.track_surface, z_points.shape[0],
+              [z_field, grid, z_points, guess, wp.float64(tol), int(max_iter), out, iterations])
 
 
 def track_surface(grid: EolGrid, z_nodes: np.ndarray, z_vertices: np.ndarray, guess: np.ndarray,
