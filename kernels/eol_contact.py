@@ -440,9 +440,9 @@ def row_products(
     m: int,
     system: wp.array(dtype=wp.float64),
 ):
-    """Per packed row i, after S (m x m) in ``system``: J_i w, J_i a, b_i, overlap_i and sum_s J_is
-    over nodes with mass (the row's momentum direction, for the contact impulse), each a segment
-    of m values."""
+    """Per packed row i, after S (m x m) in ``system``: J_i w, J_i a, b_i, overlap_i, sum_s J_is
+    over nodes with mass (the row's momentum direction, for the contact impulse) and the row's id
+    (exact in a float64), each a segment of m values: the host reads them in one copy."""
     i = wp.tid()
     k1 = surf.block + 1
     base = block_origin(row_id[i], surf)
@@ -465,6 +465,7 @@ def row_products(
     system[o + 3 * m + i] = packed[i, n - 1]
     for d in range(3):
         system[o + (4 + d) * m + i] = jsum[d]
+    system[o + 7 * m + i] = wp.float64(row_id[i])
 
 
 @wp.kernel
@@ -576,3 +577,12 @@ def node_friction(
     w0[s] = w0[s] + d
     wp.atomic_add(impulse, 0, mass[s] * d)
     wp.atomic_add(impulse, 1, wp.cross(x, wp.transpose(surf.to_axes) * (mass[s] * d)))
+
+
+@wp.kernel
+def accumulate(total: wp.array(dtype=wp.vec3d), part: wp.array(dtype=wp.vec3d)):
+    """total += part: a step's reaction impulses (``surface_reaction``) summed over an ``advance``
+    on the device."""
+    i = wp.tid()
+    total[i] = total[i] + part[i]
+

@@ -141,25 +141,111 @@ def velocity_moments(
             wp.atomic_add(out, 28 + 4 * r + q, B1[r, q])
 
 
+# layout of the split's fields on the device (``split_fields``): L_0 (9, row-major), c_0 (3),
+# L_1 (9), c_1 (3) and C[3, 3] (the moments' total weight: the body's mass under the mass norm)
+FIELDS = 25
+
+
+@wp.func
+def cross_mat(v: wp.vec3d) -> wp.mat33d:
+    """[v]x with [v]x w = v x w."""
+    z = wp.float64(0.0)
+    return wp.mat33d(z, -v[2], v[1], v[2], z, -v[0], -v[1], v[0], z)
+
+
+@wp.func
+def fields_of_moments(kind: int, C: wp.mat44d, B: wp.mat44d) -> wp.mat44d:
+    """(L, c) of the least-squares split (Eq. 23) from the moments C = sum k yb yb^T and B = sum k
+    w yb^T (rows 0-2), returned as the 3x4 block [L | c] of a 4x4 (``wsim.eol.split`` derives it).
+
+    Affine (kind 1): [L | c] = B C^-1. Rigid (kind 0): the normal equations of J_L = [-[y]x, I]
+    with S = C[:3, :3], s = C[:3, 3], k = C[3, 3]: (tr S I - S) omega + [s]x c = r_omega and
+    -[s]x omega + k c = r_c. Eliminating c leaves the weighted inertia about the centroid,
+    (tr S I - S + [s]x [s]x / k) omega = r_omega - [s]x r_c / k, then c = (r_c + [s]x omega) / k;
+    L = [omega]x."""
+    out = wp.mat44d()
+    if C[3, 3] <= wp.float64(0.0):
+        return out
+    if kind == 1:
+        Q = B * wp.inverse(C)
+        for r in range(3):
+            for q in range(4):
+                out[r, q] = Q[r, q]
+        return out
+    S = wp.mat33d(C[0, 0], C[0, 1], C[0, 2], C[1, 0], C[1, 1], C[1, 2], C[2, 0], C[2, 1], C[2, 2])
+    sy = wp.vec3d(C[0, 3], C[1, 3], C[2, 3])
+    k = C[3, 3]
+    r_w = wp.vec3d(B[2, 1] - B[1, 2], B[0, 2] - B[2, 0], B[1, 0] - B[0, 1])
+    r_c = wp.vec3d(B[0, 3], B[1, 3], B[2, 3])
+    X = cross_mat(sy)
+    A = wp.trace(S) * wp.identity(n=3, dtype=wp.float64) - S + X * X / k
+    omega = wp.inverse(A) * (r_w - X * r_c / k)
+    c = (r_c + X * omega) / k
+    L = cross_mat(omega)
+    for r in range(3):
+        for q in range(3):
+            out[r, q] = L[r, q]
+        out[r, 3] = c[r]
+    return out
+
+
+@wp.kernel
+def split_fields(moments: wp.array(dtype=wp.float64), kind: int, fields: wp.array(dtype=wp.float64)):
+    """One thread: the split's (L_0, c_0), (L_1, c_1) from ``velocity_moments`` into ``fields``
+    (layout ``FIELDS``), so the step's kernels read them without a round trip to the host."""
+    C = wp.mat44d()
+    B0 = wp.mat44d()
+    B1 = wp.mat44d()
+    for r in range(4):
+        for q in range(4):
+            C[r, q] = moments[4 * r + q]
+    for r in range(3):
+        for q in range(4):
+            B0[r, q] = moments[16 + 4 * r + q]
+            B1[r, q] = moments[28 + 4 * r + q]
+    F0 = fields_of_moments(kind, C, B0)
+    F1 = fields_of_moments(kind, C, B1)
+    for r in range(3):
+        for q in range(3):
+            fields[3 * r + q] = F0[r, q]
+            fields[12 + 3 * r + q] = F1[r, q]
+        fields[9 + r] = F0[r, 3]
+        fields[21 + r] = F1[r, 3]
+    fields[24] = C[3, 3]
+
+
+@wp.func
+def field_L(fields: wp.array(dtype=wp.float64), at: int) -> wp.mat33d:
+    return wp.mat33d(fields[at], fields[at + 1], fields[at + 2], fields[at + 3], fields[at + 4], fields[at + 5],
+                     fields[at + 6], fields[at + 7], fields[at + 8])
+
+
+@wp.func
+def field_c(fields: wp.array(dtype=wp.float64), at: int) -> wp.vec3d:
+    return wp.vec3d(fields[at], fields[at + 1], fields[at + 2])
+
+
 @wp.kernel
 def eulerian_residual(
     w0: wp.array(dtype=wp.vec3d),
     w1: wp.array(dtype=wp.vec3d),
     mass: wp.array(dtype=wp.float64),
     grid: Grid,
-    L0: wp.mat33d,
-    c0: wp.vec3d,
-    L1: wp.mat33d,
-    c1: wp.vec3d,
+    fields: wp.array(dtype=wp.float64),
     F_L_inv: wp.mat33d,
     chunks: int,
     v0: wp.array(dtype=wp.vec3d),
     v1: wp.array(dtype=wp.vec3d),
     vmax: wp.array(dtype=wp.float64),
 ):
-    """v*_i = F_L^-1 (w_i - L_i y - c_i) (Eq. 24 for both parts of Eq. 32), and per axis max |v*_i| (Eq. 33)."""
+    """v*_i = F_L^-1 (w_i - L_i y - c_i) (Eq. 24 for both parts of Eq. 32), and per axis max |v*_i|
+    (Eq. 33); (L_i, c_i) from ``fields`` (``split_fields``)."""
     chunk = wp.tid()
     n = mass.shape[0]
+    L0 = field_L(fields, 0)
+    c0 = field_c(fields, 9)
+    L1 = field_L(fields, 12)
+    c1 = field_c(fields, 21)
     m0 = wp.vec3d()
     m1 = wp.vec3d()
     for s in range(chunk, n, chunks):
@@ -181,13 +267,14 @@ def eulerian_residual(
 
 
 @wp.kernel
-def remove_lagrangian_part(v: wp.array(dtype=wp.vec3d), mass: wp.array(dtype=wp.float64), grid: Grid, L: wp.mat33d,
-                           c: wp.vec3d):
+def remove_lagrangian_part(v: wp.array(dtype=wp.vec3d), mass: wp.array(dtype=wp.float64), grid: Grid,
+                           fields: wp.array(dtype=wp.float64)):
     """v_s -= L y_s + c at the nodes with mass: the residual loses the Lagrangian field (L, c) that
-    the least-squares split (Eq. 23) finds in it, so that it carries no momentum of its own."""
+    the least-squares split (Eq. 23) finds in it (``fields``' first part, ``split_fields``), so
+    that it carries no momentum of its own."""
     s = wp.tid()
     if mass[s] > wp.float64(0.0):
-        v[s] = v[s] - L * node_position(s, grid) - c
+        v[s] = v[s] - field_L(fields, 0) * node_position(s, grid) - field_c(fields, 9)
 
 
 @wp.kernel

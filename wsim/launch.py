@@ -30,6 +30,7 @@ from wsim.kernels import copy as kcopy
 
 
 _COPY = {wp.float64: kcopy.copy_float64, wp.vec3d: kcopy.copy_vec3d}
+_ARRAY = wp.array
 _WARP_SCALAR = type(wp.float64(0.0)).__mro__[-2]  # warp's scalar_base
 
 
@@ -39,7 +40,7 @@ def _same(new: Any, old: Any) -> bool:
         return True
     if type(new) is not type(old):
         return False
-    if isinstance(new, wp.array):
+    if isinstance(new, _ARRAY):
         return (new.ptr == old.ptr and new.shape == old.shape and new.strides == old.strides
                 and new.dtype == old.dtype)
     if isinstance(new, ctypes.Array):

@@ -46,7 +46,7 @@ from wsim.eol.advection import advect_arrays, check_scheme, extend_reference_map
 from wsim.eol.contact import ContactRows, ContactSystem, block_nodes, rows_from_blocks, solve_contact, surface_samples
 from wsim.eol.elastic import hourglass_forces, sample_forces
 from wsim.eol.grid import EolGrid, make_grid, material_samples
-from wsim.eol.split import lagrangian_fields, velocity_moments
+from wsim.eol.split import split_on_device, unpack_fields
 from wsim.eol.state import EolState
 from wsim.eol.timestep import adaptive_dt, elastic_dt_limit
 from wsim.eol.tracking import track_points
@@ -87,7 +87,7 @@ class _MovingSurface:
     cur: wp.array
     mesh: wp.Mesh
     n_faces: int
-    impulse: wp.array
+    impulse: wp.array  # the normal part, summed on the device
     step_impulse: wp.array
     step_weight: wp.array
     velocity: wp.array
@@ -100,6 +100,7 @@ class _MovingSurface:
     g: np.ndarray | None = None
     friction: np.ndarray | None = None  # friction impulse this body took from it this step (world)
     friction_moment: np.ndarray | None = None  # its moment about the world origin
+    friction_impulse: np.ndarray | None = None  # (V, 3) the friction part handed to it over the advance
 
 
 @dataclass(frozen=True)
@@ -431,6 +432,7 @@ class EolBody(VertexImpulses, Body):
         """Forces, lumped masses and elastic energy of the loaded state (what the last step's force pass left)."""
         if self.state.coupling_until >= 0.0:  # a restored push still to deliver
             self._register_coupling()
+        self._views.clear()  # the state may hold new arrays
         self._force_pass()
 
     def intermediate_vertices(self) -> np.ndarray:
@@ -634,13 +636,12 @@ class EolBody(VertexImpulses, Body):
             acc = sum(self._load_value(fn(t, x), x.shape, "a body force (acceleration [m/s^2] per point)", t)
                       for fn in self._point_forces)
             work.append((st.y_points, (self.material.rho * self._volumes)[:, None] * acc, 0))
-        shape = self.grid.node_shape
         self._tmp.zero_()
         applied = wp.zeros(1, dtype=wp.vec3d, device=d)
         for y, f_world, surface in work:
             self._launch(kl.scatter_point_forces, len(f_world),
-                      [y, wp.array(f_world @ A, dtype=wp.vec3d, device=d), self._mass.reshape(shape),
-                              self._grid, surface, self._tmp.reshape(shape), applied])
+                      [y, wp.array(f_world @ A, dtype=wp.vec3d, device=d), self._g3(self._mass),
+                              self._grid, surface, self._g3(self._tmp), applied])
         self._launch(ks.add_acceleration, self.grid.n_nodes, [self._tmp, self._mass, self._a])
         self._load_force = A @ np.array(applied.numpy()[0])
 
@@ -706,11 +707,16 @@ class EolBody(VertexImpulses, Body):
         )
         self._device = device
         self._launch = Launcher(device)  # the step's launches, replayed (``wsim.launch``)
+        self._views: dict[tuple, wp.array] = {}  # ``_g3``
         self._allocate_grid_arrays()
         self._energy = wp.zeros(1, dtype=wp.float64, device=d)
         self._chunks = ks.CHUNKS_CUDA if d.is_cuda else ks.CHUNKS_CPU
         self._moments = wp.zeros(40, dtype=wp.float64, device=d)
-        self._vmax = wp.zeros(8, dtype=wp.float64, device=d)  # max |v*_0|, |v*_1| per axis; outside the grid
+        # what a step reads back, in one copy: max |v*_0|, |v*_1| per axis and the material outside
+        # the grid's margin (8), then the split's fields (``kernels.eol_step.FIELDS``)
+        self._readout = wp.zeros(8 + ks.FIELDS, dtype=wp.float64, device=d)
+        self._vmax, self._fields = self._readout[:8], self._readout[8:]
+        self._restore_fields = wp.zeros(ks.FIELDS, dtype=wp.float64, device=d)
         self._iters = wp.zeros(max(len(self._volumes), len(self._z_vertices)), dtype=wp.int32, device=d)
         self._flowing = wp.zeros(1, dtype=wp.int32, device=d)
         self._m_total = 0.0
@@ -779,7 +785,8 @@ class EolBody(VertexImpulses, Body):
         st.v = wp.array(v, dtype=wp.vec3d, device=d)
         st.grid_grown = grown.copy()
         st.active_rows = np.zeros(0, dtype=np.int64)
-        self._launch.clear()  # the recorded launches hold the old grid's arrays
+        self._launch.clear()  # the recorded launches and the views hold the old grid's arrays
+        self._views.clear()
         self._allocate_grid_arrays()
         if self._surface is not None:  # rows laid out on the new grid
             self._contact_slots(self._row_groups, regrid=True)
@@ -826,13 +833,13 @@ class EolBody(VertexImpulses, Body):
         if self.lagrangian == "eulerian":
             st.v.assign(w)
             return
-        (L0, c0), _ = self._split(self._w, self._a)
+        self._split(self._w, self._a)
         self._vmax.zero_()
-        zero = wp.vec3d()
         self._launch(ks.eulerian_residual, self._chunks,
-                  [self._w, self._a, self._mass, self._grid, _mat(L0), wp.vec3d(*c0), _mat(np.zeros((3, 3))),
-                          zero, _mat(np.linalg.inv(self._F_L())), self._chunks, self._v0, self._v1, self._vmax])
+                     [self._w, self._a, self._mass, self._grid, self._fields, _mat(np.linalg.inv(self._F_L())),
+                      self._chunks, self._v0, self._v1, self._vmax])
         wp.copy(st.v, self._v0)
+        (L0, c0), _, _ = unpack_fields(self._fields.numpy())
         if self.lagrangian == "rigid":
             st.omega = np.array([L0[2, 1], L0[0, 2], L0[1, 0]])
             st.Tdot = st.F @ c0
@@ -879,6 +886,7 @@ class EolBody(VertexImpulses, Body):
         self._row_of_slot = wp.full(n_rows, -1, dtype=wp.int32, device=d)
         self._n_rows = wp.zeros(1, dtype=wp.int32, device=d)
         self._system = wp.empty(0, dtype=wp.float64, device=d)  # S and the row vectors, grown on demand
+        self._friction_acc = wp.zeros(2, dtype=wp.vec3d, device=d)  # ``_friction``'s force and moment
 
     def set_moving_surfaces(self, surfaces: Sequence[tuple[int, np.ndarray, np.ndarray, np.ndarray, float]]) -> None:
         """Surfaces of other bodies that move on their own over the coming ``advance`` and may touch
@@ -913,6 +921,7 @@ class EolBody(VertexImpulses, Body):
             ms.p0.assign(ms.p0_host)
             ms.p1.assign(ms.p1_host)
             ms.impulse.zero_()
+            ms.friction_impulse = np.zeros((len(p0), 3))
             ms.mu = float(mu)
             both = np.concatenate([p0, np.asarray(p1)])
             ms.reach = 2.0 * float(np.linalg.norm(np.ptp(both, axis=0))) + self.grid.h
@@ -928,7 +937,7 @@ class EolBody(VertexImpulses, Body):
     def moving_surface_impulses(self) -> dict[int, np.ndarray]:
         """Momentum [N s] (V, 3) per vertex that each moving surface received from this body over
         the last ``advance`` (world axes), by key."""
-        return {ms.key: ms.impulse.numpy() for ms in self._moving}
+        return {ms.key: ms.impulse.numpy() + ms.friction_impulse for ms in self._moving}
 
     def advance(self, t0: float, t1: float) -> None:
         """Adaptive steps (Eq. 33) from the body's time to t1, each capped by the frame end, the
@@ -977,17 +986,25 @@ class EolBody(VertexImpulses, Body):
             return self.state.Adot.copy(), self.state.Tdot.copy()
         return np.zeros((3, 3)), np.zeros(3)
 
+    def _g3(self, a: wp.array) -> wp.array:
+        """The grid-shaped (3-D) view of a flat nodal array, made once per array: a fresh
+        ``reshape`` costs several microseconds of host time, and a step takes about twenty."""
+        key = (a.ptr, a.dtype, a.shape)
+        view = self._views.get(key)
+        if view is None:
+            view = self._views[key] = a.reshape(self.grid.node_shape)
+        return view
+
     def _force_pass(self) -> None:
         """Forces, lumped masses (with the floor) and elastic energy of the current state."""
-        shape = self.grid.node_shape
-        sample_forces(self._grid, self.state.z.reshape(shape), self.state.y_points, self._vol, self.state.Fp_inv,
-                      self.plasticity is not None, self._F_L(), self.material, self._forces.reshape(shape),
-                      self._mass.reshape(shape), self._energy, self._device, self._launch)
+        sample_forces(self._grid, self._g3(self.state.z), self.state.y_points, self._vol, self.state.Fp_inv,
+                      self.plasticity is not None, self._F_L(), self.material, self._g3(self._forces),
+                      self._g3(self._mass), self._energy, self._device, self._launch)
         if self._filled is not None:
             full = self.grid.h**3 if self.quadrature > 1 else 0.0  # one point per cell integrates no cell fully
-            hourglass_forces(self._grid, self.state.z.reshape(shape), self.state.y_points, self._vol, full,
+            hourglass_forces(self._grid, self._g3(self.state.z), self.state.y_points, self._vol, full,
                              self._F_L(), self.hourglass * self.material.mu, self._filled,
-                             self._forces.reshape(shape), self._energy, self._device, self._launch)
+                             self._g3(self._forces), self._energy, self._device, self._launch)
         self._launch.copy(self._mass_real, self._mass)
         if self._mass_floor > 0.0:
             self._launch(ks.floor_mass, self.grid.n_nodes,
@@ -1011,11 +1028,10 @@ class EolBody(VertexImpulses, Body):
         if self._tractions or self._point_forces or self._coupling_load:
             self._apply_loads(st.time)
         if self.damping > 0.0:
-            shape = self.grid.node_shape
             self._tmp.zero_()
             self._launch(ks.viscous_forces, len(self._volumes),
-                      [self._w.reshape(shape), self._grid, self.state.y_points, self._vol,
-                              _mat(np.linalg.inv(self._F_L())), wp.float64(self.damping), self._tmp.reshape(shape)])
+                      [self._g3(self._w), self._grid, self.state.y_points, self._vol,
+                              _mat(np.linalg.inv(self._F_L())), wp.float64(self.damping), self._g3(self._tmp)])
             self._launch(ks.add_acceleration, n,
                       [self._tmp, self._mass, self._a])
         t = self._tick("forces", t)
@@ -1061,7 +1077,7 @@ class EolBody(VertexImpulses, Body):
                 t = self._tick("qp", t)
             # 4. least-squares split of both parts (Eqs. 23-25, 32) and the step size (Eq. 33)
             w0, w1 = self._w, self._a
-            (L0, c0), (L1, c1) = self._split(w0, w1)
+            self._split(w0, w1)  # the fields stay on the device; read back with vmax below
             if attempt == 0:
                 self._vmax.zero_()
                 # material within one cell of the grid's boundary (tracked at the end of the last
@@ -1074,9 +1090,13 @@ class EolBody(VertexImpulses, Body):
             else:
                 self._vmax[:6].zero_()
             self._launch(ks.eulerian_residual, self._chunks,
-                      [w0, w1, self._mass, self._grid, _mat(L0), wp.vec3d(*c0), _mat(L1),
-                              wp.vec3d(*c1), _mat(np.linalg.inv(self._F_L())), self._chunks, self._v0, self._v1, self._vmax])
-            vmax = self._vmax.numpy()
+                         [w0, w1, self._mass, self._grid, self._fields, _mat(np.linalg.inv(self._F_L())), self._chunks,
+                          self._v0, self._v1, self._vmax])
+            readout = self._readout.numpy()  # the step's one synchronization without contact
+            vmax = readout[:8]
+            (L0, c0), (L1, c1), weight = unpack_fields(readout[8:])
+            if self.lagrangian != "eulerian" and self.split == "mass":
+                self._m_total = weight  # the mass norm's total weight is the body's mass
             if vmax[6] > 0.0 or vmax[7] > 0.0:
                 if np.all(np.isfinite(vmax[6:])) and self._grow_grid():
                     return  # nothing advanced: the caller steps again on the larger grid
@@ -1119,7 +1139,7 @@ class EolBody(VertexImpulses, Body):
         if self.plasticity is not None:
             self._flowing.zero_()
             self._launch(kp.plastic_flow, len(self._volumes),
-                      [self.state.z.reshape(self.grid.node_shape), self._grid, self.state.y_points,
+                      [self._g3(self.state.z), self._grid, self.state.y_points,
                               _mat(self._F_L()), wp.float64(self.material.mu), wp.float64(self.material.lam),
                               wp.float64(self.plasticity.yield_stress), wp.float64(self.plasticity.flow_rate * dt),
                               self.state.Fp_inv, self._flowing])
@@ -1138,18 +1158,19 @@ class EolBody(VertexImpulses, Body):
         st.steps += 1
         st.dt_prev = dt
 
-    def _split(self, w0: wp.array, w1: wp.array) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
-        """Lagrangian fields (L_i, c_i) of the least-squares split of w0 and w1 (Eq. 23), from their
-        moments (``wsim.eol.split``); also sets the body's mass for the gravity impulse."""
+    def _split(self, w0: wp.array, w1: wp.array) -> None:
+        """The least-squares split of w0 and w1 (Eq. 23) into ``self._fields`` on the device
+        (``wsim.eol.split.split_on_device``; zero for Eulerian coordinates); sets the body's mass
+        for the gravity impulse where the split's weights do not give it."""
         if self.lagrangian == "eulerian":
+            self._fields.zero_()
             self._m_total = float(np.sum(self._mass.numpy()))
-            z = (np.zeros((3, 3)), np.zeros(3))
-            return z, z
+            return
         mass_norm = self.split == "mass"
-        C, B0, B1 = velocity_moments(self._grid, w0, w1, self._mass, mass_norm, self._chunks, self._moments, self._device,
-                                     self._launch)
-        self._m_total = C[3, 3] if mass_norm else float(np.sum(self._mass.numpy()))
-        return lagrangian_fields(self.lagrangian, C, B0), lagrangian_fields(self.lagrangian, C, B1)
+        split_on_device(self._grid, w0, w1, self._mass, mass_norm, self._chunks, self._moments, self.lagrangian,
+                        self._fields, self._device, self._launch)
+        if not mass_norm:  # the uniform split's weights are 1: the mass needs its own sum
+            self._m_total = float(np.sum(self._mass.numpy()))
 
     def _restore_momentum(self) -> None:
         """Keep the Eulerian velocity free of momentum after advection (Lagrangian frames, the
@@ -1163,36 +1184,33 @@ class EolBody(VertexImpulses, Body):
         no force gave it, and the next split hands it to the frame. A slab landing edge-first on a
         frictionless plane (a purely vertical contact impulse) gained 0.58 kg m/s sideways in two
         frames and slid off at 0.38 m/s (an independent check; issue 16). The Lagrangian part the
-        split finds in the advected v, with the new masses, is that error: it is removed."""
+        split finds in the advected v, with the new masses, is that error: it is removed (on the
+        device, no read-back; a body without mass gets a zero field)."""
         if self.lagrangian == "eulerian" or self.split != "mass":
             return
-        C, B, _ = velocity_moments(self._grid, self.state.v, self.state.v, self._mass, True, self._chunks,
-                                   self._moments, self._device, self._launch)
-        if C[3, 3] <= 0.0:
-            return
-        L, c = lagrangian_fields(self.lagrangian, C, B)
+        split_on_device(self._grid, self.state.v, self.state.v, self._mass, True, self._chunks, self._moments,
+                        self.lagrangian, self._restore_fields, self._device, self._launch)
         self._launch(ks.remove_lagrangian_part, self.grid.n_nodes,
-                  [self.state.v, self._mass, self._grid, _mat(L), wp.vec3d(*c)])
+                     [self.state.v, self._mass, self._grid, self._restore_fields])
 
     def _advect_fields(self, dt: float) -> None:
         d = self._device
         shape = self.grid.node_shape
-        mass3 = self._mass.reshape(shape)
+        mass3 = self._g3(self._mass)
         # v* extended one layer into empty nodes, then advected by itself: v^{t+1}
-        self._launch(ks.extrapolate, shape, [self._vstar.reshape(shape), mass3, self._tmp.reshape(shape)])
+        self._launch(ks.extrapolate, shape, [self._g3(self._vstar), mass3, self._g3(self._tmp)])
         self._advect(self._tmp, self._tmp, dt, self.state.v)
-        self._launch(ks.extrapolate, shape, [self.state.v.reshape(shape), mass3, self._tmp.reshape(shape)])
+        self._launch(ks.extrapolate, shape, [self._g3(self.state.v), mass3, self._g3(self._tmp)])
         self._launch.copy(self.state.v, self._tmp)
         # z = y - u: Dz/Dt = 0, advected by v^{t+1}
         self._launch.copy(self._tmp2, self.state.z)
         self._advect(self._tmp2, self.state.v, dt, self.state.z)
         # ... and continued into the empty nodes around the material (``extend_reference_map``)
-        extend_reference_map(self.state.z.reshape(shape), self._mass_real.reshape(shape), self.grid.h,
+        extend_reference_map(self._g3(self.state.z), self._g3(self._mass_real), self.grid.h,
                              EXTEND_LAYERS, self._layer, self._G_ext, d, self._launch)
 
     def _advect(self, q: wp.array, vel: wp.array, dt: float, out: wp.array) -> None:
-        shape = self.grid.node_shape
-        advect_arrays(q.reshape(shape), vel.reshape(shape), out.reshape(shape), self._grid, dt,
+        advect_arrays(self._g3(q), self._g3(vel), self._g3(out), self._grid, dt,
                       self.advection, self._advect_scratch, self._device, launcher=self._launch)
 
     def _integrate_pose(self, dt: float, L: np.ndarray, c: np.ndarray) -> None:
@@ -1208,7 +1226,7 @@ class EolBody(VertexImpulses, Body):
 
     def _track(self) -> None:
         """Algorithm 2 for the material points and the surface vertices, each from its last position."""
-        z3 = self.state.z.reshape(self.grid.node_shape)
+        z3 = self._g3(self.state.z)
         tol = self._positive["track_tol"] * self.grid.h
         for zs, ys in ((self._z_pts, self.state.y_points), (self._z_vert, self.state.y_vertices)):
             track_points(self._grid, z3, zs, ys, tol, 20, ys, self._iters, self._device, self._launch)
@@ -1259,7 +1277,8 @@ class EolBody(VertexImpulses, Body):
             self._launch(kc.apply_impulses, m,
                       [self._surface, self._row_packed, self._row_ids, self._mass,
                               wp.array(own, dtype=wp.float64, device=d), self._tmp, self._tmp])
-            acc = wp.zeros(2, dtype=wp.vec3d, device=d)
+            acc = self._friction_acc
+            acc.zero_()
             self._launch(kc.node_friction, self.grid.n_nodes,
                       [self._surface, self._tmp, self._mass, self._w, self._a, wp.float64(dt), _mat(ms.G),
                               wp.vec3d(*ms.g), wp.float64(ms.mu), acc])
@@ -1281,14 +1300,13 @@ class EolBody(VertexImpulses, Body):
             self._launch(kc.surface_reaction, self._surface.sample_face.shape[0],
                       [self._surface, ms.mesh.id, *ms.hits, self._row_of_slot, lam_d, ms.step_impulse,
                               ms.step_weight])
-            J = ms.step_impulse.numpy()
-            if ms.friction is not None and np.any(ms.friction):
+            self._launch(kc.accumulate, ms.p0.shape[0], [ms.impulse, ms.step_impulse])
+            if ms.friction is not None and np.any(ms.friction):  # friction is spread on the host
                 weight = ms.step_weight.numpy()
                 if weight.sum() > 0.0:
-                    J = J + _opposite_push(ms.friction, ms.friction_moment, weight / weight.sum(),
-                                           ms.p0_host + self._fraction * (ms.p1_host - ms.p0_host))
+                    ms.friction_impulse += _opposite_push(ms.friction, ms.friction_moment, weight / weight.sum(),
+                                                          ms.p0_host + self._fraction * (ms.p1_host - ms.p0_host))
                     total += ms.friction
-            ms.impulse.assign(ms.impulse.numpy() + J)
         return total
 
     def _compact(self) -> int:
@@ -1300,10 +1318,10 @@ class EolBody(VertexImpulses, Body):
         return int(self._n_rows.numpy()[0])
 
     def _read_system(self, m: int) -> tuple[ContactSystem, np.ndarray]:
-        """The dual QP of the m compacted rows, assembled on the device (one m^2 + 7 m copy to the
+        """The dual QP of the m compacted rows, assembled on the device (one m^2 + 8 m copy to the
         host), sorted by row id; and that order (sorted row i is the device's row order[i])."""
         d = self._device
-        size = m * m + 7 * m
+        size = m * m + 8 * m
         if self._system.shape[0] < size:
             self._system = wp.empty(2 * size, dtype=wp.float64, device=d)
         self._system[: m * m].zero_()
@@ -1312,10 +1330,10 @@ class EolBody(VertexImpulses, Body):
         self._launch(kc.schur_complement, (m, 27 * self._row_groups),
                   [self._surface, self._row_packed, self._row_ids, self._row_of_slot, self._mass, m,
                           self._system])
-        ids = self._row_ids[:m].numpy().astype(np.int64)
         host = self._system[:size].numpy()
+        ids = host[m * m + 7 * m:].astype(np.int64)
         order = np.argsort(ids, kind="stable")
-        vec = host[m * m:].reshape(7, m)[:, order]
+        vec = host[m * m:m * m + 7 * m].reshape(7, m)[:, order]
         system = ContactSystem(S=host[: m * m].reshape(m, m)[np.ix_(order, order)], Jw=vec[0], Ja=vec[1], b=vec[2],
                                ids=ids[order], collider=ids[order] // int(np.prod(self._ccells)), overlap=vec[3],
                                jsum=vec[4:].T.copy())

@@ -15,9 +15,11 @@ are solved directly (``momentum_split``, the matrix form).
 ``EolBody`` solves the same problem from moments: per node J_L(y_s) q1_dot = L y_s + c (rigid:
 L = [omega]x, c = nu; affine: L = A_dot, c = b_dot), so the normal equations only need
 C = sum_s k_s yb_s yb_s^T and B = sum_s k_s w_s yb_s^T with yb = (y, 1) and node weights k_s (1:
-the paper's 2-norm; m_s: the mass norm). ``velocity_moments`` reduces them on the device (one
-40-value read-back per step), ``lagrangian_fields`` solves for (L, c); ``fields_of`` turns a
-``momentum_split`` q1_dot into the same (L, c), so both forms can be compared.
+the paper's 2-norm; m_s: the mass norm). ``split_on_device`` reduces them and solves for (L, c)
+on the device (kernels ``velocity_moments``, ``split_fields``: the step reads the fields back
+with its velocity maxima, one synchronization); ``lagrangian_fields`` is the same solve on the
+host; ``fields_of`` turns a ``momentum_split`` q1_dot into the same (L, c), so the forms can be
+compared.
 """
 
 from __future__ import annotations
@@ -76,12 +78,17 @@ def moments(y: np.ndarray, w: np.ndarray, weights: np.ndarray) -> tuple[np.ndarr
     return (k[:, None] * yb).T @ yb, (k[:, None] * w).T @ yb
 
 
-def velocity_moments(grid: Grid, w0: wp.array, w1: wp.array, mass: wp.array, weighted: bool, chunks: int,
-                     out: wp.array, device, launcher: Launcher | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """C (4, 4), B_0 and B_1 (3, 4) of the nodal velocities w0, w1 over the nodes with mass, node
-    weight m_s (``weighted``) or 1, reduced on the device into ``out`` (40 float64) and read back."""
-    out.zero_()
-    launch_on(device, launcher, ks.velocity_moments, chunks,
-              [w0, w1, mass, grid, int(bool(weighted)), chunks, out])
-    mom = out.numpy()
-    return mom[:16].reshape(4, 4), mom[16:28].reshape(3, 4), mom[28:40].reshape(3, 4)
+def split_on_device(grid: Grid, w0: wp.array, w1: wp.array, mass: wp.array, weighted: bool, chunks: int,
+                    moments: wp.array, kind: str, fields: wp.array, device, launcher: Launcher | None = None) -> None:
+    """The split of w0 and w1 (``lagrangian_fields`` of their moments) into ``fields`` (layout
+    ``kernels.eol_step.FIELDS``), on the device: no read-back. ``kind``: "rigid" or "affine"."""
+    moments.zero_()
+    launch_on(device, launcher, ks.velocity_moments, chunks, [w0, w1, mass, grid, int(bool(weighted)), chunks, moments])
+    launch_on(device, launcher, ks.split_fields, 1, [moments, 1 if kind == "affine" else 0, fields])
+
+
+def unpack_fields(fields: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray], float]:
+    """((L_0, c_0), (L_1, c_1), total weight) from ``split_on_device``'s fields read back."""
+    f = np.asarray(fields, dtype=np.float64)
+    return (f[0:9].reshape(3, 3), f[9:12].copy()), (f[12:21].reshape(3, 3), f[21:24].copy()), float(f[24])
+
