@@ -310,7 +310,8 @@ def surface_reaction(
     hit_bary: wp.array(dtype=wp.vec3d),
     hit_face: wp.array(dtype=wp.int32),
     row_of_slot: wp.array(dtype=wp.int32),
-    lam: wp.array(dtype=wp.float64),
+    lam: wp.array2d(dtype=wp.float64),
+    dt: wp.float64,
     impulse: wp.array(dtype=wp.vec3d),
     weight: wp.array(dtype=wp.float64),
 ):
@@ -319,8 +320,8 @@ def surface_reaction(
     dGamma (``pushed_area``, world; its node weights sum to one); the partner receives +lambda_r c_s at the sample's
     nearest point (shifted, see below), spread over that face's vertices by barycentric weights.
     ``weight`` gets each vertex's share |lambda_r c_s| b_k at the nearest point itself (positive:
-    how the friction's reaction is spread). ``lam`` is per packed row (this step's lambda_0 + dt
-    lambda_1)."""
+    how the friction's reaction is spread). ``lam`` (lambda_0, lambda_1) is per packed row; the
+    step's multiplier is lambda_0 + dt lambda_1."""
     i = wp.tid()
     slot = hit_row[i]
     if slot < 0:
@@ -328,7 +329,7 @@ def surface_reaction(
     r = row_of_slot[slot]
     if r < 0:
         return
-    l = lam[r]
+    l = lam[r, 0] + dt * lam[r, 1]
     if l == wp.float64(0.0):
         return
     yp, x, an = sample_world(surf, i)
@@ -538,6 +539,36 @@ def apply_impulses(
                 c = row_coefficient(packed, i, slot) / mass[s]
                 wp.atomic_sub(w, s, l0 * c)
                 wp.atomic_sub(a, s, l1 * c)
+
+
+@wp.kernel
+def apply_group_impulses(
+    surf: ContactSurface,
+    packed: wp.array2d(dtype=wp.float64),
+    row_id: wp.array(dtype=wp.int32),
+    mass: wp.array(dtype=wp.float64),
+    lam: wp.array2d(dtype=wp.float64),
+    dt: wp.float64,
+    group: int,
+    cells_per_group: int,
+    dv: wp.array(dtype=wp.vec3d),
+):
+    """dv -= M^-1 J_g^T (lambda_0 + dt lambda_1) over the rows of one row group g (a collider or a
+    moving surface: row id // cells_per_group): the velocity change that group's multipliers at
+    dt give each node (what friction against that surface acts on)."""
+    i = wp.tid()
+    if row_id[i] // cells_per_group != group:
+        return
+    l = lam[i, 0] + dt * lam[i, 1]
+    if l == wp.float64(0.0):
+        return
+    k1 = surf.block + 1
+    base = block_origin(row_id[i], surf)
+    for slot in range(k1 * k1 * k1):
+        s = slot_node(surf, base, slot)
+        if s >= 0:
+            if mass[s] > wp.float64(0.0):
+                wp.atomic_sub(dv, s, l * row_coefficient(packed, i, slot) / mass[s])
 
 
 @wp.kernel

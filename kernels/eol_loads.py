@@ -32,14 +32,16 @@ def scatter_point_forces(
     grid: Grid,
     mass_weighted: int,
     forces: wp.array3d(dtype=wp.vec3d),
-    applied: wp.array(dtype=wp.vec3d),
+    applied: wp.array(dtype=wp.float64),
+    at: int,
 ):
     """forces_s += w_s f_i over the nodes with mass of y_i's cell, w_s = Phi_s(y_i) / sum Phi (a body
     force: the particle-to-grid transfer of the point's mass) or, ``mass_weighted``, Phi_s m_s /
     sum Phi m (a surface force: every node of the cell is accelerated alike, as the contact rows
     do - with plain Phi a node holding a sliver of material at the mass floor takes a share of a
     surface push out of all proportion to its mass, and advecting its Eulerian velocity loses
-    momentum: 5 % of the exchange between two colliding EoL spheres, issue 18)."""
+    momentum: 5 % of the exchange between two colliding EoL spheres, issue 18). The force
+    delivered is summed into applied[at:at + 3] (a slot of the step's read-back)."""
     i = wp.tid()
     fi = f[i]
     g = grid_coordinates(forces, y[i], grid)
@@ -65,7 +67,8 @@ def scatter_point_forces(
             if mass_weighted != 0:
                 w = w * m
             wp.atomic_add(forces, a, b, d, w * fi)
-    wp.atomic_add(applied, 0, fi)
+    for k in range(3):
+        wp.atomic_add(applied, at + k, fi[k])
 
 
 @wp.kernel

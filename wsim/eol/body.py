@@ -72,6 +72,7 @@ EXTEND_LAYERS = 3
 # Kelvin-Voigt viscosity, in units of rho h c1, from which a body gets the longer elastic cap
 # (0.5 h / c1 instead of 0.25; see ``EolBody``'s elastic_safety)
 DAMPED_CAP_VISCOSITY = 0.02
+READ_LOAD = 8 + ks.FIELDS  # where the loads' delivered force sits in a step's read-back (``_readout``)
 STAGES = ("forces", "collision", "assembly", "qp", "ls", "advect", "track", "plasticity")
 
 
@@ -644,13 +645,14 @@ class EolBody(VertexImpulses, Body):
                       for fn in self._point_forces)
             work.append((st.y_points, (self.material.rho * self._volumes)[:, None] * acc, 0))
         self._tmp.zero_()
-        applied = wp.zeros(1, dtype=wp.vec3d, device=d)
+        applied = self._readout[READ_LOAD:READ_LOAD + 3]  # read back with the step's velocity maxima
+        applied.zero_()
         for y, f_world, surface in work:
             self._launch(kl.scatter_point_forces, len(f_world),
-                      [y, wp.array(f_world @ A, dtype=wp.vec3d, device=d), self._g3(self._mass),
-                              self._grid, surface, self._g3(self._tmp), applied])
+                         [y, wp.array(f_world @ A, dtype=wp.vec3d, device=d), self._g3(self._mass),
+                          self._grid, surface, self._g3(self._tmp), self._readout, READ_LOAD])
         self._launch(ks.add_acceleration, self.grid.n_nodes, [self._tmp, self._mass, self._a])
-        self._load_force = A @ np.array(applied.numpy()[0])
+        self._loads_applied = True  # the step's read-back sets _load_force
 
     def _check_initial_overlap(self) -> None:
         """Refuse a body that starts deeper than half a cell inside a collider (it would start
@@ -720,9 +722,10 @@ class EolBody(VertexImpulses, Body):
         self._chunks = ks.CHUNKS_CUDA if d.is_cuda else ks.CHUNKS_CPU
         self._moments = wp.zeros(40, dtype=wp.float64, device=d)
         # what a step reads back, in one copy: max |v*_0|, |v*_1| per axis and the material outside
-        # the grid's margin (8), then the split's fields (``kernels.eol_step.FIELDS``)
-        self._readout = wp.zeros(8 + ks.FIELDS, dtype=wp.float64, device=d)
-        self._vmax, self._fields = self._readout[:8], self._readout[8:]
+        # the grid's margin (8), the split's fields (``kernels.eol_step.FIELDS``), the loads' force
+        self._readout = wp.zeros(READ_LOAD + 3, dtype=wp.float64, device=d)
+        self._vmax, self._fields = self._readout[:8], self._readout[8:READ_LOAD]
+        self._loads_applied = False
         self._restore_fields = wp.zeros(ks.FIELDS, dtype=wp.float64, device=d)
         self._iters = wp.zeros(max(len(self._volumes), len(self._z_vertices)), dtype=wp.int32, device=d)
         self._flowing = wp.zeros(1, dtype=wp.int32, device=d)
@@ -1072,14 +1075,12 @@ class EolBody(VertexImpulses, Body):
                 st.active_rows = system.ids[sol.active]
                 lam = np.empty((m, 2))
                 lam[order] = np.column_stack([sol.lam0, sol.lam1])  # back to the device's row order
+                self._lam = wp.array(lam, dtype=wp.float64, device=d)  # friction and the reaction read it too
                 # w, a become w_0, w_1 in place (both are recomputed from the state every step)
                 self._launch(kc.apply_impulses, m,
-                          [self._surface, self._row_packed, self._row_ids, self._mass,
-                                  wp.array(lam, dtype=wp.float64, device=d), self._w, self._a])
+                             [self._surface, self._row_packed, self._row_ids, self._mass, self._lam, self._w, self._a])
                 if self._moving:
-                    group = np.empty(m, dtype=np.int64)
-                    group[order] = system.collider
-                    self._friction(lam[:, 0] + dt_guess * lam[:, 1], dt_guess, group)
+                    self._friction(m, dt_guess)
                 n_active = int(sol.active.sum())
                 t = self._tick("qp", t)
             # 4. least-squares split of both parts (Eqs. 23-25, 32) and the step size (Eq. 33)
@@ -1101,7 +1102,10 @@ class EolBody(VertexImpulses, Body):
                           self._v0, self._v1, self._vmax])
             readout = self._readout.numpy()  # the step's one synchronization without contact
             vmax = readout[:8]
-            (L0, c0), (L1, c1), weight = unpack_fields(readout[8:])
+            (L0, c0), (L1, c1), weight = unpack_fields(readout[8:READ_LOAD])
+            if self._loads_applied:
+                self._load_force = self._axes() @ readout[READ_LOAD:READ_LOAD + 3]
+                self._loads_applied = False
             if self.lagrangian != "eulerian" and self.split == "mass":
                 self._m_total = weight  # the mass norm's total weight is the body's mass
             if vmax[6] > 0.0 or vmax[7] > 0.0:
@@ -1134,7 +1138,7 @@ class EolBody(VertexImpulses, Body):
         if sol is not None:  # momentum the QP delivered: sum_s m_s (w_s - w_hat_s) = -J^T lambda
             st.contact_impulse = st.contact_impulse - self._axes() @ ((sol.lam0 + dt * sol.lam1) @ system.jsum)
             if self._moving:
-                st.contact_impulse = st.contact_impulse + self._react(lam[:, 0] + dt * lam[:, 1])
+                st.contact_impulse = st.contact_impulse + self._react(m, dt)
         t = self._tick("ls", t)
         # 5. advect v* by itself, then z by v^{t+1} (Algorithm 1), and move the frame
         self._advect_fields(dt)
@@ -1267,46 +1271,46 @@ class EolBody(VertexImpulses, Body):
                       [surf, ms.mesh.id, ms.velocity, float(ms.reach), len(self._colliders) + k,
                               self._row_acc, self._row_flag, *ms.hits])
 
-    def _friction(self, lam: np.ndarray, dt: float, group: np.ndarray) -> None:
-        """Coulomb friction against each moving surface at the nodes its rows pushed (``lam``: the
-        multipliers at dt, ``group``: each row's collider or surface, both in device row order), on
-        w0; the impulses are kept for ``_react``."""
-        d = self._device
-        m = len(lam)
-        for k, ms in enumerate(self._moving):
+    def _friction(self, m: int, dt: float) -> None:
+        """Coulomb friction against each moving surface at the nodes its rows pushed (the m rows'
+        multipliers ``self._lam`` at dt), on w0; the impulses are kept for ``_react``. One
+        read-back for all surfaces."""
+        rubbing = [(k, ms) for k, ms in enumerate(self._moving) if ms.mu > 0.0]
+        for ms in self._moving:
             ms.friction = np.zeros(3)
-            if ms.mu <= 0.0:
-                continue
+        if not rubbing:
+            return
+        if self._friction_acc.shape[0] < 2 * len(rubbing):
+            self._friction_acc = wp.zeros(2 * len(self._moving), dtype=wp.vec3d, device=self._device)
+        acc = self._friction_acc
+        acc.zero_()
+        cells = int(np.prod(self._ccells))
+        for j, (k, ms) in enumerate(rubbing):
             # the velocity change this surface's rows gave each node: -M^-1 J^T lambda over them
-            own = np.zeros((m, 2))
-            own[:, 0] = np.where(group == len(self._colliders) + k, lam, 0.0)
             self._tmp.zero_()
-            self._launch(kc.apply_impulses, m,
-                      [self._surface, self._row_packed, self._row_ids, self._mass,
-                              wp.array(own, dtype=wp.float64, device=d), self._tmp, self._tmp])
-            acc = self._friction_acc
-            acc.zero_()
+            self._launch(kc.apply_group_impulses, m,
+                         [self._surface, self._row_packed, self._row_ids, self._mass, self._lam, wp.float64(dt),
+                          len(self._colliders) + k, cells, self._tmp])
             self._launch(kc.node_friction, self.grid.n_nodes,
-                      [self._surface, self._tmp, self._mass, self._w, self._a, wp.float64(dt), _mat(ms.G),
-                              wp.vec3d(*ms.g), wp.float64(ms.mu), acc])
-            host = acc.numpy()
-            ms.friction = self._axes() @ host[0]
-            ms.friction_moment = host[1]
+                         [self._surface, self._tmp, self._mass, self._w, self._a, wp.float64(dt), _mat(ms.G),
+                          wp.vec3d(*ms.g), wp.float64(ms.mu), acc[2 * j:2 * j + 2]])
+        host = acc.numpy()
+        for j, (_, ms) in enumerate(rubbing):
+            ms.friction = self._axes() @ host[2 * j]
+            ms.friction_moment = host[2 * j + 1]
 
-    def _react(self, lam: np.ndarray) -> np.ndarray:
+    def _react(self, m: int, dt: float) -> np.ndarray:
         """Hand each moving surface the opposite of the impulse this body took from it this step:
-        the normal part per sample (``lam``: the step's multipliers, device row order), the
-        friction spread over the vertices in proportion to their normal part. Returns the total
-        friction impulse this body took (world)."""
-        d = self._device
-        lam_d = wp.array(lam, dtype=wp.float64, device=d)
+        the normal part per sample (the m rows' multipliers ``self._lam`` at dt), the friction
+        spread over the vertices in proportion to their normal part. Returns the total friction
+        impulse this body took (world)."""
         total = np.zeros(3)
         for ms in self._moving:
             ms.step_impulse.zero_()
             ms.step_weight.zero_()
             self._launch(kc.surface_reaction, self._surface.sample_face.shape[0],
-                      [self._surface, ms.mesh.id, *ms.hits, self._row_of_slot, lam_d, ms.step_impulse,
-                              ms.step_weight])
+                         [self._surface, ms.mesh.id, *ms.hits, self._row_of_slot, self._lam, wp.float64(dt),
+                          ms.step_impulse, ms.step_weight])
             self._launch(kc.accumulate, ms.p0.shape[0], [ms.impulse, ms.step_impulse])
             if ms.friction is not None and np.any(ms.friction):  # friction is spread on the host
                 weight = ms.step_weight.numpy()
