@@ -519,15 +519,25 @@ def apply_impulses(
     row_id: wp.array(dtype=wp.int32),
     mass: wp.array(dtype=wp.float64),
     lam: wp.array2d(dtype=wp.float64),
+    group: int,
+    cells_per_group: int,
+    dt: wp.float64,
     w: wp.array(dtype=wp.vec3d),
     a: wp.array(dtype=wp.vec3d),
 ):
-    """w -= M^-1 J^T lambda_0 and a -= M^-1 J^T lambda_1 (Eq. 31 on the frozen active set): the
-    unconstrained w and a become w_0 and w_1 in place. Rows share nodes: atomics. (Also the
-    velocity change of one row group alone, for friction: lambda_1 = 0 and w = a.)"""
+    """group < 0: w -= M^-1 J^T lambda_0 and a -= M^-1 J^T lambda_1 over every row (Eq. 31 on the
+    frozen active set: the unconstrained w and a become w_0 and w_1 in place). group >= 0: only
+    the rows of that row group (a collider or a moving surface: row id // cells_per_group), w -=
+    M^-1 J^T (lambda_0 + dt lambda_1): the velocity change that group's multipliers at dt give
+    each node (what friction against that surface acts on; ``a`` is not touched)."""
     i = wp.tid()
     l0 = lam[i, 0]
     l1 = lam[i, 1]
+    if group >= 0:
+        if row_id[i] // cells_per_group != group:
+            return
+        l0 = l0 + dt * l1
+        l1 = wp.float64(0.0)
     if l0 == wp.float64(0.0) and l1 == wp.float64(0.0):
         return
     k1 = surf.block + 1
@@ -538,37 +548,8 @@ def apply_impulses(
             if mass[s] > wp.float64(0.0):
                 c = row_coefficient(packed, i, slot) / mass[s]
                 wp.atomic_sub(w, s, l0 * c)
-                wp.atomic_sub(a, s, l1 * c)
-
-
-@wp.kernel
-def apply_group_impulses(
-    surf: ContactSurface,
-    packed: wp.array2d(dtype=wp.float64),
-    row_id: wp.array(dtype=wp.int32),
-    mass: wp.array(dtype=wp.float64),
-    lam: wp.array2d(dtype=wp.float64),
-    dt: wp.float64,
-    group: int,
-    cells_per_group: int,
-    dv: wp.array(dtype=wp.vec3d),
-):
-    """dv -= M^-1 J_g^T (lambda_0 + dt lambda_1) over the rows of one row group g (a collider or a
-    moving surface: row id // cells_per_group): the velocity change that group's multipliers at
-    dt give each node (what friction against that surface acts on)."""
-    i = wp.tid()
-    if row_id[i] // cells_per_group != group:
-        return
-    l = lam[i, 0] + dt * lam[i, 1]
-    if l == wp.float64(0.0):
-        return
-    k1 = surf.block + 1
-    base = block_origin(row_id[i], surf)
-    for slot in range(k1 * k1 * k1):
-        s = slot_node(surf, base, slot)
-        if s >= 0:
-            if mass[s] > wp.float64(0.0):
-                wp.atomic_sub(dv, s, l * row_coefficient(packed, i, slot) / mass[s])
+                if group < 0:
+                    wp.atomic_sub(a, s, l1 * c)
 
 
 @wp.kernel

@@ -1078,7 +1078,8 @@ class EolBody(VertexImpulses, Body):
                 self._lam = wp.array(lam, dtype=wp.float64, device=d)  # friction and the reaction read it too
                 # w, a become w_0, w_1 in place (both are recomputed from the state every step)
                 self._launch(kc.apply_impulses, m,
-                             [self._surface, self._row_packed, self._row_ids, self._mass, self._lam, self._w, self._a])
+                             [self._surface, self._row_packed, self._row_ids, self._mass, self._lam, -1, 1,
+                              wp.float64(0.0), self._w, self._a])
                 if self._moving:
                     self._friction(m, dt_guess)
                 n_active = int(sol.active.sum())
@@ -1288,9 +1289,9 @@ class EolBody(VertexImpulses, Body):
         for j, (k, ms) in enumerate(rubbing):
             # the velocity change this surface's rows gave each node: -M^-1 J^T lambda over them
             self._tmp.zero_()
-            self._launch(kc.apply_group_impulses, m,
-                         [self._surface, self._row_packed, self._row_ids, self._mass, self._lam, wp.float64(dt),
-                          len(self._colliders) + k, cells, self._tmp])
+            self._launch(kc.apply_impulses, m,
+                         [self._surface, self._row_packed, self._row_ids, self._mass, self._lam,
+                          len(self._colliders) + k, cells, wp.float64(dt), self._tmp, self._tmp])
             self._launch(kc.node_friction, self.grid.n_nodes,
                          [self._surface, self._tmp, self._mass, self._w, self._a, wp.float64(dt), _mat(ms.G),
                           wp.vec3d(*ms.g), wp.float64(ms.mu), acc[2 * j:2 * j + 2]])
