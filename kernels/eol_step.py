@@ -147,13 +147,6 @@ FIELDS = 25
 
 
 @wp.func
-def cross_mat(v: wp.vec3d) -> wp.mat33d:
-    """[v]x with [v]x w = v x w."""
-    z = wp.float64(0.0)
-    return wp.mat33d(z, -v[2], v[1], v[2], z, -v[0], -v[1], v[0], z)
-
-
-@wp.func
 def fields_of_moments(kind: int, C: wp.mat44d, B: wp.mat44d) -> wp.mat44d:
     """(L, c) of the least-squares split (Eq. 23) from the moments C = sum k yb yb^T and B = sum k
     w yb^T (rows 0-2), returned as the 3x4 block [L | c] of a 4x4 (``wsim.eol.split`` derives it).
@@ -177,11 +170,11 @@ def fields_of_moments(kind: int, C: wp.mat44d, B: wp.mat44d) -> wp.mat44d:
     k = C[3, 3]
     r_w = wp.vec3d(B[2, 1] - B[1, 2], B[0, 2] - B[2, 0], B[1, 0] - B[0, 1])
     r_c = wp.vec3d(B[0, 3], B[1, 3], B[2, 3])
-    X = cross_mat(sy)
+    X = wp.skew(sy)
     A = wp.trace(S) * wp.identity(n=3, dtype=wp.float64) - S + X * X / k
     omega = wp.inverse(A) * (r_w - X * r_c / k)
     c = (r_c + X * omega) / k
-    L = cross_mat(omega)
+    L = wp.skew(omega)
     for r in range(3):
         for q in range(3):
             out[r, q] = L[r, q]

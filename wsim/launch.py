@@ -1,11 +1,11 @@
 """Recorded kernel launches: a step's fixed launch sequence without the cost of packing every argument.
 
-``wp.launch`` converts every argument to its C form on every call. On an H100 that is ~50 us for
-an EoL kernel of 13 arguments (a ``Grid`` struct, four 3x3 matrices) whose GPU time is ~5 us, and
-an EoL step makes ~30 launches: the host, not the GPU, set the step's pace
+``wp.launch`` converts every argument to its C form on every call. On an H100 that was 52-96 us
+(two runs) for an EoL kernel of 13 arguments (a ``Grid`` struct, four 3x3 matrices) whose GPU
+time is ~5 us, and an EoL step makes ~30 launches: the host, not the GPU, set the step's pace
 (``tools/bench_launch.py``). A ``Launcher`` records one command per call site
 (``wp.launch(..., record_cmd=True)``) and on later calls re-packs only the arguments that differ
-from the last call there: ~7 us for a replay, ~17 us with two small arguments changed.
+from the last call there: 7-9 us for a replay, 17-40 us with two small arguments changed.
 
 What counts as unchanged:
 * the same object (arrays, structs; a struct is passed by its live C struct, so a field set
@@ -55,18 +55,17 @@ def _same(new: Any, old: Any) -> bool:
 class Launcher:
     """``launch(kernel, dim, inputs)`` on one device, replaying a recorded command per call site.
 
-    A call site is the calling function's code and line (plus ``key`` where one line launches
-    the same kernel for different purposes). One Launcher per object that owns the arrays (a
+    A call site is the calling function's code and line. One Launcher per object that owns the arrays (a
     body): the recorded commands keep references to the last arguments."""
 
     def __init__(self, device: wp.Device) -> None:
         self.device = device
         self._cmds: dict[tuple, tuple[Any, list[Any], Any]] = {}
 
-    def __call__(self, kernel: Any, dim: Any, inputs: list[Any], key: Any = None, depth: int = 1) -> None:
+    def __call__(self, kernel: Any, dim: Any, inputs: list[Any], depth: int = 1) -> None:
         """``depth``: which caller's line is the call site (1: the caller; 2: its caller)."""
         frame = sys._getframe(depth)
-        site = (kernel, frame.f_code, frame.f_lineno, key)
+        site = (kernel, frame.f_code, frame.f_lineno)
         entry = self._cmds.get(site)
         if entry is None:
             cmd = wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, record_cmd=True)
@@ -98,11 +97,10 @@ class Launcher:
         self._cmds.clear()
 
 
-def launch_on(device: wp.Device, launcher: Launcher | None, kernel: Any, dim: Any, inputs: list[Any],
-              key: Any = None) -> None:
+def launch_on(device: wp.Device, launcher: Launcher | None, kernel: Any, dim: Any, inputs: list[Any]) -> None:
     """``launcher(kernel, dim, inputs)`` when one is given, else a plain ``wp.launch`` on ``device``
     (helpers that bodies call every step and tests call once)."""
     if launcher is None:
         wp.launch(kernel, dim=dim, inputs=inputs, device=device)
     else:
-        launcher(kernel, dim, inputs, key, depth=2)
+        launcher(kernel, dim, inputs, depth=2)

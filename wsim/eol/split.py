@@ -29,8 +29,8 @@ import warp as wp
 
 from wsim.kernels import eol_step as ks
 from wsim.kernels.eol_grid import Grid
-from wsim.rigid import cross_matrix
 from wsim.launch import Launcher, launch_on
+from wsim.rigid import cross_matrix
 
 
 def momentum_split(M_C: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -91,4 +91,3 @@ def unpack_fields(fields: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], tu
     """((L_0, c_0), (L_1, c_1), total weight) from ``split_on_device``'s fields read back."""
     f = np.asarray(fields, dtype=np.float64)
     return (f[0:9].reshape(3, 3), f[9:12].copy()), (f[12:21].reshape(3, 3), f[21:24].copy()), float(f[24])
-
