@@ -36,6 +36,10 @@ from wsim.kernels.eol_grid import (
     local_coordinates,
 )
 
+# dt R_s / m_s above which a node's viscosity is cut (kernel ``viscous_forces``): nodes of full cells
+# have 2.0-2.7 at the viscous cap, where dt lambda_max = 2/3 (tests/test_eol_foundation.py)
+VISCOUS_ROW_LIMIT = wp.constant(wp.float64(3.0))
+
 # below this det F_e the element is treated as (nearly) inverted: ln J is evaluated at the floor
 J_FLOOR = 1.0e-6
 
@@ -172,3 +176,81 @@ def hourglass_forces(
         wp.atomic_add(forces, i + c // 4, j + (c // 2) % 2, k + c % 2, kh * dy)
         e += wp.dot(dy, dy)
     wp.atomic_add(energy, 0, half * kh * e)
+
+
+@wp.kernel
+def viscous_row_bound(
+    grid: Grid,
+    w: wp.array3d(dtype=wp.vec3d),
+    y: wp.array(dtype=wp.vec3d),
+    volume: wp.array(dtype=wp.float64),
+    F_L_inv: wp.mat33d,
+    eta: wp.float64,
+    bound: wp.array3d(dtype=wp.float64),
+):
+    """Gershgorin bound of the Kelvin-Voigt stiffness K (f = -K w, kernel ``viscous_forces``):
+    R_s = sum_t ||K_st|| <= sum_i 2 eta w_i |b_s| sum_c |b_c| with b_c = F_L^-T grad_y Phi_c(y_i),
+    since K_st = sum_i eta w_i ((b_s . b_t) I + b_t b_s^T) over the points i in both supports.
+    Forward Euler on M w' = -K w is stable where dt R_s / m_s <= 2 for every node s. ``w`` only
+    gives the grid's node shape; ``bound`` is accumulated (zero it first)."""
+    i = wp.tid()
+    h = grid.h
+    g = grid_coordinates(w, y[i], grid)
+    cell = cell_of(w, g)
+    t = local_coordinates(g, cell)
+    FT = wp.transpose(F_L_inv)
+    total = wp.float64(0.0)
+    for c in range(8):
+        total += wp.length(FT * corner_gradient(c, t, h))
+    for c in range(8):
+        wp.atomic_add(bound, cell[0] + c // 4, cell[1] + (c // 2) % 2, cell[2] + c % 2,
+                      wp.float64(2.0) * eta * volume[i] * wp.length(FT * corner_gradient(c, t, h)) * total)
+
+
+@wp.kernel
+def viscous_forces(
+    w: wp.array3d(dtype=wp.vec3d),
+    grid: Grid,
+    y: wp.array(dtype=wp.vec3d),
+    volume: wp.array(dtype=wp.float64),
+    F_L_inv: wp.mat33d,
+    eta: wp.float64,
+    mass: wp.array3d(dtype=wp.float64),
+    bound: wp.array3d(dtype=wp.float64),
+    dt: wp.float64,
+    forces: wp.array3d(dtype=wp.vec3d),
+):
+    """Kelvin-Voigt damping: Cauchy stress 2 eta_i D, D = sym(grad_x w), grad_x w = grad_y w F_L^-1;
+    f_s = -sum_i w_i 2 eta_i D F_L^-T grad_y Phi_s(y_i) (material volume for spatial volume: small
+    volume change). A rigid velocity field has D = 0: only deformation is damped.
+
+    The update is explicit (w += dt M^-1 f), stable while dt lambda_max(M^-1 K) <= 2. Material
+    filling whole cells has dt lambda_max = 2/3 at the cap rho h^2 / (12 eta), and every one of its
+    nodes the same row bound dt R_s / m_s = 2.0, 2.5, 2.7 for 1, 2, 3 points per axis (R_s:
+    Gershgorin bound of node s's row, kernel ``viscous_row_bound``). A node with a sliver of
+    material in its support (the mass floor) meets nearly the full stiffness of its cells with a
+    fraction of their mass: its row bound is many times a full node's, and forward Euler
+    overshoots there, growing each step. So a point is damped with
+    eta_i = eta min_c min(1, VISCOUS_ROW_LIMIT m_c / (dt R_c)) over its cell's corners c: no row
+    exceeds about 1.5x a full node's bound (a 2x margin to instability), nodes of full cells keep
+    eta, and the stress stays symmetric: forces sum to zero, momentum and angular momentum are
+    exact and the damping only dissipates."""
+    i = wp.tid()
+    h = grid.h
+    g = grid_coordinates(w, y[i], grid)
+    cell = cell_of(w, g)
+    t = local_coordinates(g, cell)
+    share = wp.float64(1.0)
+    for c in range(8):
+        a = cell[0] + c // 4
+        b = cell[1] + (c // 2) % 2
+        d = cell[2] + c % 2
+        load = dt * bound[a, b, d]
+        if load > VISCOUS_ROW_LIMIT * mass[a, b, d]:
+            share = wp.min(share, VISCOUS_ROW_LIMIT * mass[a, b, d] / load)
+    Gx = gradient_in_cell(w, cell, t, h) * F_L_inv
+    D = wp.float64(0.5) * (Gx + wp.transpose(Gx))
+    stress = volume[i] * wp.float64(2.0) * eta * share * D * wp.transpose(F_L_inv)
+    for c in range(8):
+        wp.atomic_add(forces, cell[0] + c // 4, cell[1] + (c // 2) % 2, cell[2] + c % 2,
+                      -(stress * corner_gradient(c, t, h)))

@@ -27,11 +27,6 @@ import warp as wp
 
 from wsim.kernels.eol_grid import (
     Grid,
-    cell_of,
-    corner_gradient,
-    gradient_in_cell,
-    grid_coordinates,
-    local_coordinates,
     node_position,
 )
 
@@ -312,32 +307,6 @@ def extrapolate(v: wp.array3d(dtype=wp.vec3d), mass: wp.array3d(dtype=wp.float64
         out[i, j, k] = acc / cnt
     else:
         out[i, j, k] = wp.vec3d()
-
-
-@wp.kernel
-def viscous_forces(
-    w: wp.array3d(dtype=wp.vec3d),
-    grid: Grid,
-    y: wp.array(dtype=wp.vec3d),
-    volume: wp.array(dtype=wp.float64),
-    F_L_inv: wp.mat33d,
-    eta: wp.float64,
-    forces: wp.array3d(dtype=wp.vec3d),
-):
-    """Kelvin-Voigt damping: Cauchy stress 2 eta D, D = sym(grad_x w), grad_x w = grad_y w F_L^-1;
-    f_s = -sum_i w_i 2 eta D F_L^-T grad_y Phi_s(y_i) (material volume for spatial volume: small
-    volume change). A rigid velocity field has D = 0: only deformation is damped."""
-    i = wp.tid()
-    h = grid.h
-    g = grid_coordinates(w, y[i], grid)
-    cell = cell_of(w, g)
-    t = local_coordinates(g, cell)
-    Gx = gradient_in_cell(w, cell, t, h) * F_L_inv
-    D = wp.float64(0.5) * (Gx + wp.transpose(Gx))
-    stress = volume[i] * wp.float64(2.0) * eta * D * wp.transpose(F_L_inv)
-    for c in range(8):
-        wp.atomic_add(forces, cell[0] + c // 4, cell[1] + (c // 2) % 2, cell[2] + c % 2,
-                      -(stress * corner_gradient(c, t, h)))
 
 
 @wp.kernel

@@ -501,3 +501,81 @@ def test_tracking_is_safeguarded_on_a_folded_field(device):
     assert np.all(np.isfinite(out))
     assert r[1] <= r[0]
     assert np.linalg.norm(out - guess) <= MAX_STEP * grid.h * max(int(iters[0]), 1) + 1e-12
+
+
+def test_kelvin_voigt_damping_is_stable_on_light_nodes(device, rng):
+    """Explicit Kelvin-Voigt damping at its cap rho h^2 / (12 eta) (kernels ``viscous_row_bound``,
+    ``viscous_forces``). A box of whole cells (Gauss points): dt lambda_max(M^-1 K) = 2/3 and the
+    damping is untouched. The same box with its bottom layer squashed into the top tenth of its
+    cells (what a landing does): its bottom nodes hold slivers of material (at the 0.02 rho h^3
+    mass floor) under nearly the full stiffness of their cells, and with the full viscosity on
+    every node dt lambda_max exceeds 2, the forward-Euler instability that spiked a landing box's
+    Eulerian velocity and collapsed its dt in the pile scene. Limited, dt lambda_max stays below 1,
+    and forward Euler never gains kinetic energy (the M-norm of a stable explicit step of a
+    symmetric dissipative operator never grows). The forces sum to zero with no moment."""
+    import warp as wp
+
+    from wsim.eol.elastic import viscous_forces
+    from wsim.eol.grid import MaterialSamples
+    from wsim.kernels.eol_grid import grid_struct
+
+    m = trimesh.creation.box(extents=(0.4, 0.4, 0.4))
+    grid = make_grid(m.vertices, 4)
+    h, shape, full = grid.h, grid.node_shape, RHO * grid.h**3
+    eta = 50.0
+    dt = RHO * h**2 / (12.0 * eta)
+    lo = np.round((m.bounds[0] - grid.origin) / h)
+    gauss = 0.5 + 0.5 / np.sqrt(3.0) * np.array([-1.0, 1.0])
+    local = np.stack(np.meshgrid(gauss, gauss, gauss, indexing="ij"), axis=-1).reshape(-1, 3)
+    cells = np.stack(np.meshgrid(*(np.arange(4),) * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    gs = grid_struct(grid)
+    forces = wp.zeros(shape, dtype=wp.vec3d, device=device)
+    bound = wp.zeros(shape, dtype=wp.float64, device=device)
+
+    def setting(squash):
+        t = np.repeat(local[None], len(cells), axis=0)
+        bottom = cells[:, 1] == 0
+        t[bottom, :, 1] = 1.0 - squash * (1.0 - t[bottom, :, 1])
+        points = grid.origin + h * (lo + cells[:, None, :] + t).reshape(-1, 3)
+        nodes, phi = grid.shape_functions(points)
+        real = lumped_masses(grid, MaterialSamples(points, np.full(len(points), h**3 / 8), nodes, phi), RHO)
+        mass = np.where(real > 0.0, np.maximum(real, 0.02 * full), 0.0)
+        arrays = (wp.array(points, dtype=wp.vec3d, device=device),
+                  wp.array(np.full(len(points), h**3 / 8), dtype=wp.float64, device=device),
+                  wp.array(mass.reshape(shape), dtype=wp.float64, device=device))
+        return real, mass, arrays
+
+    def f(w, arrays, step):  # step 0: no limit (the full viscosity on every node)
+        y, vol, m3 = arrays
+        viscous_forces(gs, wp.array(w.reshape(*shape, 3), dtype=wp.vec3d, device=device), y, vol, np.eye(3), eta,
+                       m3, step, forces, bound, device)
+        return forces.numpy().reshape(-1, 3)
+
+    def lambda_max(mass, arrays, step, iterations=200):  # power iteration on M^-1 K (M-self-adjoint)
+        has = mass > 0.0
+        w = np.where(has[:, None], rng.standard_normal((grid.n_nodes, 3)), 0.0)
+        for _ in range(iterations):
+            Aw = np.zeros_like(w)
+            Aw[has] = -f(w, arrays, step)[has] / mass[has, None]
+            lam = np.sqrt((mass[:, None] * Aw**2).sum() / (mass[:, None] * w**2).sum())
+            w = Aw / np.abs(Aw).max()
+        return lam
+
+    real, mass, arrays = setting(1.0)
+    w0 = np.where((mass > 0.0)[:, None], rng.standard_normal((grid.n_nodes, 3)), 0.0)
+    assert np.array_equal(f(w0, arrays, dt), f(w0, arrays, 0.0))  # whole cells: the full viscosity
+    assert dt * lambda_max(mass, arrays, dt) == pytest.approx(2.0 / 3.0, rel=1e-3)
+    real, mass, arrays = setting(0.1)
+    assert ((real > 0.0) & (real < 0.02 * full)).any()  # the sliver nodes the test is about
+    assert dt * lambda_max(mass, arrays, 0.0) > 2.0
+    assert dt * lambda_max(mass, arrays, dt) < 1.0
+    fw = f(w0, arrays, dt)
+    x = grid.node_positions()
+    assert np.abs(fw.sum(axis=0)).max() < 1e-12 * np.abs(fw).sum()
+    assert np.abs(np.cross(x, fw).sum(axis=0)).max() < 1e-12 * np.abs(fw).sum() * np.abs(x).max()
+    has = mass > 0.0
+    w, energy = w0.copy(), []
+    for _ in range(60):
+        energy.append(0.5 * float((mass * (w * w).sum(axis=1)).sum()))
+        w[has] += dt * f(w, arrays, dt)[has] / mass[has, None]
+    assert np.all(np.diff(energy) <= 1e-12 * energy[0]) and energy[-1] < 0.5 * energy[0]  # stable, and it damps

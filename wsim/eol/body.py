@@ -44,7 +44,7 @@ from wsim.body import Body, VertexImpulses
 from wsim.colliders import Surfaces
 from wsim.eol.advection import advect_arrays, check_scheme, extend_reference_map
 from wsim.eol.contact import ContactRows, ContactSystem, block_nodes, rows_from_blocks, solve_contact, surface_samples
-from wsim.eol.elastic import hourglass_forces, sample_forces
+from wsim.eol.elastic import hourglass_forces, sample_forces, viscous_forces
 from wsim.eol.grid import EolGrid, make_grid, material_samples
 from wsim.eol.split import split_on_device, unpack_fields
 from wsim.eol.state import EolState
@@ -764,6 +764,8 @@ class EolBody(VertexImpulses, Body):
         self._G_ext = wp.zeros(shape, dtype=wp.mat33d, device=d)
         # material volume per cell, for the hourglass control (only when it is on)
         self._filled = wp.zeros(self.grid.cells, dtype=wp.float64, device=d) if self.hourglass > 0.0 else None
+        # the viscous stiffness' row bounds (only with damping)
+        self._bound = wp.zeros(shape, dtype=wp.float64, device=d) if self.damping > 0.0 else None
 
     def _regrid(self, grown: np.ndarray) -> None:
         """Move to the bind-time grid enlarged by ``grown`` = (cells added below x, y, z; above x, y, z).
@@ -1038,10 +1040,8 @@ class EolBody(VertexImpulses, Body):
         if self._tractions or self._point_forces or self._coupling_load:
             self._apply_loads(st.time)
         if self.damping > 0.0:
-            self._tmp.zero_()
-            self._launch(ks.viscous_forces, len(self._volumes),
-                      [self._g3(self._w), self._grid, self.state.y_points, self._vol,
-                              _mat(np.linalg.inv(self._F_L())), wp.float64(self.damping), self._g3(self._tmp)])
+            viscous_forces(self._grid, self._g3(self._w), self.state.y_points, self._vol, self._F_L(), self.damping,
+                           self._g3(self._mass), cap, self._g3(self._tmp), self._bound, d, self._launch)
             self._launch(ks.add_acceleration, n,
                       [self._tmp, self._mass, self._a])
         t = self._tick("forces", t)

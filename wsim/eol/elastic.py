@@ -45,6 +45,21 @@ def hourglass_forces(grid: Grid, z: wp.array, y: wp.array, volumes: wp.array, fu
                       wp.float64(stiffness), forces, energy])
 
 
+def viscous_forces(grid: Grid, w: wp.array, y: wp.array, volumes: wp.array, F_L: np.ndarray, eta: float,
+                   mass: wp.array, dt: float, forces: wp.array, bound: wp.array, device,
+                   launcher: Launcher | None = None) -> None:
+    """Zero ``forces`` (3-D node array) and accumulate the Kelvin-Voigt damping forces [N] of the
+    node velocities ``w`` (3-D, F_L's axes) with viscosity ``eta`` [Pa s], explicit at steps up to
+    ``dt`` with node masses ``mass`` [kg] (kernels ``viscous_row_bound``, then ``viscous_forces``:
+    points next to nodes too light for that step are damped less); ``bound`` is node-shaped scratch."""
+    F_L_inv = wp.mat33d(*np.linalg.inv(np.asarray(F_L, dtype=np.float64)).ravel())
+    bound.zero_()
+    launch_on(device, launcher, ke.viscous_row_bound, volumes.shape[0], [grid, w, y, volumes, F_L_inv, wp.float64(eta), bound])
+    forces.zero_()
+    launch_on(device, launcher, ke.viscous_forces, volumes.shape[0],
+              [w, grid, y, volumes, F_L_inv, wp.float64(eta), mass, bound, wp.float64(dt), forces])
+
+
 def elastic_forces(grid: EolGrid, z_nodes: np.ndarray, y: np.ndarray, volumes: np.ndarray, material: ElasticMaterial,
                    device=None, F_L: np.ndarray | None = None, Fp_inv: np.ndarray | None = None,
                    ) -> tuple[np.ndarray, np.ndarray, float]:
