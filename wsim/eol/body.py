@@ -185,7 +185,10 @@ class EolBody(VertexImpulses, Body):
         track_tol: Algorithm 2 tolerance, as a fraction of h.
         fictitious: include the centrifugal and Coriolis loads on the Eulerian velocities.
         damping: Kelvin-Voigt viscosity eta [Pa s] of the deformation (0: none; the paper states
-            none, and then only advection dissipates). Explicit: it adds the cap rho h^2 / (12 eta).
+            none, and then only advection dissipates). Explicit: it adds the cap rho h^2 / (12 eta),
+            which holds for nodes of full cells; next to nodes holding a sliver of material (at the
+            ``mass_floor``) the viscosity is cut until their explicit step is as stable as a full
+            node's (kernel ``viscous_forces``; momentum stays exact).
         mass_floor: every node with material has at least mass_floor rho h^3 (a small phantom mass).
             A node whose support holds a sliver of material (a quadrature point in the far corner
             of its cell) is otherwise flung by stress gradients and by contact impulses, which
