@@ -302,6 +302,15 @@ def surface_rows(
         hit_face[i] = q.face
 
 
+@wp.func
+def hit_packed_row(hit_row: wp.array(dtype=wp.int32), row_of_slot: wp.array(dtype=wp.int32), i: int) -> int:
+    """The packed row of sample i's hit on a partner's surface (``surface_rows``), -1 if none."""
+    slot = hit_row[i]
+    if slot < 0:
+        return -1
+    return row_of_slot[slot]
+
+
 @wp.kernel
 def surface_reaction(
     surf: ContactSurface,
@@ -323,10 +332,7 @@ def surface_reaction(
     how the friction's reaction is spread). ``lam`` (lambda_0, lambda_1) is per packed row; the
     step's multiplier is lambda_0 + dt lambda_1."""
     i = wp.tid()
-    slot = hit_row[i]
-    if slot < 0:
-        return
-    r = row_of_slot[slot]
+    r = hit_packed_row(hit_row, row_of_slot, i)
     if r < 0:
         return
     l = lam[r, 0] + dt * lam[r, 1]
@@ -362,6 +368,34 @@ def surface_reaction(
         b = wp.vec3d(wp.float64(1.0) - b1 - b2, b1, b2)
     for k in range(3):
         wp.atomic_add(impulse, wp.mesh_get_index(mesh, 3 * f + k), b[k] * J)
+
+
+@wp.kernel
+def row_compliance(
+    mesh: wp.uint64,
+    hit_row: wp.array(dtype=wp.int32),
+    hit_bary: wp.array(dtype=wp.vec3d),
+    hit_face: wp.array(dtype=wp.int32),
+    row_of_slot: wp.array(dtype=wp.int32),
+    compliance: wp.array(dtype=wp.float64),
+    out: wp.array(dtype=wp.float64),
+    at: int,
+):
+    """out[at + r] = max over the samples of packed row r inside the partner's surface (``hit_*``
+    from ``surface_rows``) of the partner's compliance at the sample's nearest point, sum_k b_k c_k
+    over its face's vertices (``compliance``: velocity change per unit impulse [1/kg],
+    ``kernels.eol_loads.vertex_compliance``). The largest, so that the row's share of the partner's
+    give is not underestimated (``EolBody._exchange_terms``)."""
+    i = wp.tid()
+    r = hit_packed_row(hit_row, row_of_slot, i)
+    if r < 0:
+        return
+    f = hit_face[i]
+    b = hit_bary[i]
+    c = wp.float64(0.0)
+    for k in range(3):
+        c += wp.max(b[k], wp.float64(0.0)) * compliance[wp.mesh_get_index(mesh, 3 * f + k)]
+    wp.atomic_max(out, at + r, c)
 
 
 @wp.kernel

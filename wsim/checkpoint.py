@@ -33,7 +33,7 @@ if TYPE_CHECKING:
     from wsim.world import World
 
 FORMAT = "wsim-checkpoint"
-FORMAT_VERSION = 2  # 2: BEM and EoL states carry the coupling impulses still to deliver (issue 18)
+FORMAT_VERSION = 3  # 2: BEM and EoL states carry the coupling impulses still to deliver (issue 18); 3: and EoL the push rates of its yielding partners
 
 
 def scene_description(world: World) -> dict[str, Any]:

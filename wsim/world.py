@@ -221,6 +221,7 @@ class World:
                         by_dt.setdefault(round(float(b.dt), 15), []).append(b)
                 links = [(g[0], b) for g in by_dt.values() for b in g[1:]]
             self._groups = _joint_groups(self.joints, links)
+            self._index = {id(b): i for i, b in enumerate(self.bodies)}  # a body's key in the exchange
             self._bound = True
 
     def checkpoint(self, path: str | Path) -> Path:
@@ -282,9 +283,9 @@ class World:
             self._timed("bem", _advance_group, bodies, joints, t1, self.device, self.body_contact)
         # ... then each pusher after the bodies it pushes (EoL bodies in order, then PBD)
         lockstep = {id(b) for b in self._lockstep}
-        end: dict[int, np.ndarray] = {}  # each target's points once it has stepped (read once per interval)
+        end: dict[int, tuple] = {}  # each target's points (and give) once it has stepped (read once per interval)
         for p in pushers:
-            self._timed("coupling", _couple_surfaces, p, self._targets[id(p)], start, end, t1 - t0, g)
+            self._timed("coupling", _couple_surfaces, p, self._targets[id(p)], self._index, start, end, t1 - t0, g)
             if id(p) not in lockstep:
                 self._timed(_stage(p), p.advance, t0, t1)
                 end.pop(id(p), None)  # read before its step: not its end
@@ -294,14 +295,14 @@ class World:
             self._timed("coupling", self._exchange, t1 - t0)
 
     def _exchange(self, interval: float) -> None:
-        """Hand every pushed body what the pushers pushed it with over the interval just stepped."""
+        """Hand every pushed body what the pushers pushed it with over the interval just stepped
+        (keys: the bodies' indices in ``bodies``)."""
         impulses: dict[int, np.ndarray] = {}
         for b in self._pushers:
             for key, J in b.moving_surface_impulses().items():
                 impulses[key] = impulses.get(key, 0.0) + J
-        for b in self._pushed:
-            if id(b) in impulses:
-                b.add_vertex_impulses(impulses[id(b)], interval)
+        for key, J in impulses.items():
+            self.bodies[key].add_vertex_impulses(J, interval)
 
     def _check_frame(self) -> None:
         for body in self.bodies:
@@ -415,8 +416,8 @@ def _advance_group(bodies: list[Body], joints: list, t1: float, device, contact:
         wc.solve_group(bodies, joints, device, tol, iterations, bodies[0].steps + 1, contact_margin=margin)
 
 
-def _couple_surfaces(pusher: Body, targets: Sequence[Body], start: dict[int, np.ndarray], end: dict[int, np.ndarray],
-                     interval: float, g: float) -> None:
+def _couple_surfaces(pusher: Body, targets: Sequence[Body], index: dict[int, int], start: dict[int, np.ndarray],
+                     end: dict[int, tuple], interval: float, g: float) -> None:
     """Explicit two-way coupling between bodies (issue 18): a body that takes moving surfaces (EoL,
     PBD) gets the surfaces of its ``targets`` it may reach in this coupling interval (their
     vertices at its start and end: those bodies have already stepped), with the larger of the two
@@ -424,7 +425,9 @@ def _couple_surfaces(pusher: Body, targets: Sequence[Body], start: dict[int, np.
     over the next interval (``add_vertex_impulses``): one interval late, the momentum exact.
     ``end`` caches the targets' points at the interval's end: every pusher of a target reads
     them after the target's one step of the interval (in a pile of 16 bodies each was read back
-    up to 15 times an interval)."""
+    up to 15 times an interval), with the target's ``surface_compliance`` where it has one (EoL:
+    how much it gives way under the push, which the pusher's rows then share with it). Targets
+    are keyed by their ``index`` in the World (stable across a checkpoint)."""
     from wsim.contact import pair_friction
 
     x = pusher.points()
@@ -433,12 +436,15 @@ def _couple_surfaces(pusher: Body, targets: Sequence[Body], start: dict[int, np.
     surfaces = []
     for b in targets:
         if id(b) not in end:
-            end[id(b)] = b.points()
-        p0, p1 = start[id(b)], end[id(b)]
+            end[id(b)] = (b.points(), None)
+        p0, (p1, give) = start[id(b)], end[id(b)]
         if (np.all(np.maximum(p0.max(axis=0), p1.max(axis=0)) >= lo)
                 and np.all(np.minimum(p0.min(axis=0), p1.min(axis=0)) <= hi)):
             mu = pair_friction(getattr(pusher, "friction", None), getattr(b, "friction", None))
-            surfaces.append((id(b), p0, p1, b.faces, mu))
+            if give is None and hasattr(b, "surface_compliance"):
+                give = b.surface_compliance()
+                end[id(b)] = (p1, give)
+            surfaces.append((index[id(b)], p0, p1, b.faces, mu, give))
     pusher.set_moving_surfaces(surfaces)
 
 

@@ -102,6 +102,9 @@ class _MovingSurface:
     friction: np.ndarray | None = None  # friction impulse this body took from it this step (world)
     friction_moment: np.ndarray | None = None  # its moment about the world origin
     friction_impulse: np.ndarray | None = None  # (V, 3) the friction part handed to it over the advance
+    compliance: wp.array | None = None  # (V,) its give per unit impulse [1/kg] (None: taken as rigid)
+    rate: np.ndarray | None = None  # per collision cell: the push [N] being handed to it this advance
+    acc: np.ndarray | None = None  # per collision cell: what the rows have pushed it with so far this advance [N s]
 
 
 @dataclass(frozen=True)
@@ -805,6 +808,8 @@ class EolBody(VertexImpulses, Body):
         self._allocate_grid_arrays()
         if self._surface is not None:  # rows laid out on the new grid
             self._contact_slots(self._row_groups, regrid=True)
+            st.exchange = np.zeros((0, 3))  # per collision cell of the old layout
+            self._load_exchange()
         self._force_pass()
 
     def _grow_grid(self) -> bool:
@@ -903,22 +908,28 @@ class EolBody(VertexImpulses, Body):
         self._system = wp.empty(0, dtype=wp.float64, device=d)  # S and the row vectors, grown on demand
         self._friction_acc = wp.zeros(2, dtype=wp.vec3d, device=d)  # ``_friction``'s force and moment
 
-    def set_moving_surfaces(self, surfaces: Sequence[tuple[int, np.ndarray, np.ndarray, np.ndarray, float]]) -> None:
+    def set_moving_surfaces(self, surfaces: Sequence[tuple]) -> None:
         """Surfaces of other bodies that move on their own over the coming ``advance`` and may touch
         this one (issue 18): (key, vertices at its start (V, 3), at its end (V, 3), faces (M, 3),
-        friction). They move linearly between the two; this body's contact rows (Eq. 28) keep it
-        out of them as out of a moving collider, each at the velocity of its vertices, and the
-        opposite of what the rows push with is collected per vertex (``moving_surface_impulses``)
-        for the World to hand to their bodies. Called by the World before each ``advance``; an
-        empty list ends the coupling. The normal contact is the paper's volume constraint against
-        the surface moving with its vertices; Coulomb friction with coefficient ``friction`` acts at
-        the grid nodes it pushes, relative to the rigid motion that best fits the surface's
-        vertices over the interval (``kernels.eol_contact.node_friction``)."""
+        friction[, compliance (V,)]). They move linearly between the two; this body's contact rows
+        (Eq. 28) keep it out of them as out of a moving collider, each at the velocity of its
+        vertices, and the opposite of what the rows push with is collected per vertex
+        (``moving_surface_impulses``) for the World to hand to their bodies. Called by the World
+        before each ``advance``; an empty list ends the coupling. The normal contact is the paper's
+        volume constraint against the surface moving with its vertices; Coulomb friction with
+        coefficient ``friction`` acts at the grid nodes it pushes, relative to the rigid motion that
+        best fits the surface's vertices over the interval (``kernels.eol_contact.node_friction``).
+
+        ``compliance`` (optional, [1/kg] per vertex: how fast the partner's surface gives way per
+        unit impulse, ``surface_compliance``) makes the rows share the push with a partner that
+        yields (``_exchange_terms``); without it the partner is taken as rigid over the interval.
+        ``key`` must name the same partner from one ``advance`` to the next (the World uses its
+        index): what this body pushed it with last time is part of the state."""
         self._require_bound()
         d = self._device
         keep = {ms.key: ms for ms in self._moving}
         moving = []
-        for key, p0, p1, faces, mu in surfaces:
+        for key, p0, p1, faces, mu, *extra in surfaces:
             p0 = np.asarray(p0, dtype=np.float64)
             ms = keep.get(key)
             if ms is None or ms.p0.shape[0] != len(p0) or ms.n_faces != len(faces):
@@ -938,11 +949,24 @@ class EolBody(VertexImpulses, Body):
             ms.impulse.zero_()
             ms.friction_impulse = np.zeros((len(p0), 3))
             ms.mu = float(mu)
+            c = extra[0] if extra else None
+            if c is None:
+                ms.compliance = None
+            else:
+                c = np.asarray(c, dtype=np.float64).reshape(-1)
+                if c.shape != (len(p0),) or not np.all(np.isfinite(c)) or np.any(c < 0.0):
+                    raise InvalidParameter(f"body '{self.name}': the compliance of moving surface {key} must be "
+                                           f"{len(p0)} finite values >= 0 [1/kg], one per vertex")
+                if ms.compliance is None or ms.compliance.shape[0] != len(c):
+                    ms.compliance = wp.array(c, dtype=wp.float64, device=d)
+                else:
+                    ms.compliance.assign(c)
             both = np.concatenate([p0, np.asarray(p1)])
             ms.reach = 2.0 * float(np.linalg.norm(np.ptp(both, axis=0))) + self.grid.h
             moving.append(ms)
         self._moving = moving
         self._contact_slots(len(self._colliders) + len(moving))
+        self._load_exchange()
         P = 0 if self._surface is None else self._surface.sample_face.shape[0]
         for ms in moving:
             if ms.hits is None:  # per contact sample: its row, barycentric weights and face on this surface
@@ -954,6 +978,17 @@ class EolBody(VertexImpulses, Body):
         the last ``advance`` (world axes), by key."""
         return {ms.key: ms.impulse.numpy() + ms.friction_impulse for ms in self._moving}
 
+    def surface_compliance(self) -> np.ndarray:
+        """(V,) how fast each surface vertex gives way under a push [1/kg]: its velocity change per
+        unit impulse handed to it by ``add_vertex_impulses`` (``kernels.eol_loads.vertex_compliance``,
+        the lumped masses of the current state, before the elastic forces spread the push). A
+        vertex next to nodes that hold slivers of material gives way far more than one inside
+        whole cells; the bodies that push this one use it to share the push (``set_moving_surfaces``)."""
+        self._require_bound()
+        out = wp.empty(self._n_surface, dtype=wp.float64, device=self._device)
+        self._launch(kl.vertex_compliance, self._n_surface, [self.state.y_vertices, self._g3(self._mass), self._grid, out])
+        return out.numpy()
+
     def advance(self, t0: float, t1: float) -> None:
         """Adaptive steps (Eq. 33) from the body's time to t1, each capped by the frame end, the
         elastic limit and ``dt_max``."""
@@ -963,6 +998,7 @@ class EolBody(VertexImpulses, Body):
             self._overlap_checked = True
         eps = 1e-9 * max(t1 - t0, 1e-12)
         self._span = (self.time, t1)  # where the moving surfaces are: linear over this advance
+        self._load_exchange()
         for ms in self._moving:
             if ms.mu > 0.0:  # friction's reference motion
                 ms.G, ms.g = rigid_fit(ms.p0_host, ms.p1_host, t1 - self.time)
@@ -972,6 +1008,7 @@ class EolBody(VertexImpulses, Body):
             cap = min(t1 - self.time, self.dt_elastic, self.dt_max or math.inf)
             self._step(cap)
         if self._failure is None:
+            self._save_exchange(t1 - self._span[0])
             self.state.time = t1
 
     def check_finite(self, frame: int, time_: float) -> None:
@@ -1143,6 +1180,7 @@ class EolBody(VertexImpulses, Body):
             st.contact_impulse = st.contact_impulse - self._axes() @ ((sol.lam0 + dt * sol.lam1) @ system.jsum)
             if self._moving:
                 st.contact_impulse = st.contact_impulse + self._react(m, dt)
+                self._push_taken(system, sol.lam0 + dt * sol.lam1)
         t = self._tick("ls", t)
         # 5. advect v* by itself, then z by v^{t+1} (Algorithm 1), and move the frame
         self._advect_fields(dt)
@@ -1336,7 +1374,8 @@ class EolBody(VertexImpulses, Body):
         """The dual QP of the m compacted rows, assembled on the device (one m^2 + 8 m copy to the
         host), sorted by row id; and that order (sorted row i is the device's row order[i])."""
         d = self._device
-        size = m * m + 8 * m
+        giving = [(k, ms) for k, ms in enumerate(self._moving) if ms.compliance is not None]
+        size = m * m + (9 if giving else 8) * m
         if self._system.shape[0] < size:
             self._system = wp.empty(2 * size, dtype=wp.float64, device=d)
         self._system[: m * m].zero_()
@@ -1345,14 +1384,103 @@ class EolBody(VertexImpulses, Body):
         self._launch(kc.schur_complement, (m, 27 * self._row_groups),
                   [self._surface, self._row_packed, self._row_ids, self._row_of_slot, self._mass, m,
                           self._system])
+        if giving:  # the partners' give per row, read back with the rest
+            self._system[m * m + 8 * m:size].zero_()
+            for _, ms in giving:
+                self._launch(kc.row_compliance, self._surface.sample_face.shape[0],
+                             [ms.mesh.id, *ms.hits, self._row_of_slot, ms.compliance, self._system, m * m + 8 * m])
         host = self._system[:size].numpy()
-        ids = host[m * m + 7 * m:].astype(np.int64)
+        ids = host[m * m + 7 * m:m * m + 8 * m].astype(np.int64)
         order = np.argsort(ids, kind="stable")
         vec = host[m * m:m * m + 7 * m].reshape(7, m)[:, order]
         system = ContactSystem(S=host[: m * m].reshape(m, m)[np.ix_(order, order)], Jw=vec[0], Ja=vec[1], b=vec[2],
                                ids=ids[order], collider=ids[order] // int(np.prod(self._ccells)), overlap=vec[3],
                                jsum=vec[4:].T.copy())
+        if giving:
+            system = self._exchange_terms(system, host[m * m + 8 * m:size][order])
         return system, order
+
+    def _exchange_terms(self, system: ContactSystem, give: np.ndarray) -> ContactSystem:
+        """The rows against partners that give way (``set_moving_surfaces``' compliance), made to
+        share the push with them instead of treating them as rigid over the coupling interval.
+
+        Row i's push lambda_i moves the partner by lambda_i jsum_i near its samples, and the
+        partner's surface there gives way, which grows the row's right side (the partner's flux,
+        Eq. 28): the dual matrix becomes S + C with C_ij = jsum_i . jsum_j c_ij, c_ij the partner's
+        give at row i's samples under row j's push. C is bounded above by the diagonal
+        W_i = c_i |jsum_i| sum_j |jsum_j| over the rows j of the same partner whose blocks touch
+        i's (S_ij != 0; further rows push other parts of the partner), c_i the partner's largest
+        compliance under row i's samples (``kernels.eol_contact.row_compliance``): the Gershgorin
+        bound of the rank-one push of all those rows on one point of compliance c_i.
+
+        The partner takes the push one interval late, so its surface velocity this interval
+        already holds what it was handed (the rate r_i of this row's push over the last interval,
+        delivered uniformly): only the difference between what the row has pushed so far this
+        interval (a_i, and lambda_i at this step) and what has been delivered by the step's end
+        (r_i (tau + dt), tau the time since the interval began) gives way. So J w gets
+        W_i (r_i tau - a_i) and J a gets W_i r_i:
+
+            (S + diag W) lambda >= J w_hat - b + W (r (tau + dt) - a)
+
+        At a steady push (a = r tau, lambda = r dt) this is the rigid partner's QP exactly, so a
+        body resting on another does not sink. Against a rigid partner (W = 0) the lag makes the
+        exchange ring once the partner's surface nodes are lighter than this body's rows: per
+        interval the push changes by -C / S times the last change, a loop gain above one. With
+        W it is (C - W) / (S + W), below one in size whenever W >= C / 2 - S / 2, which the
+        upper bound W keeps. On a dense cube landing on a light slab the landing's v* fell from
+        44 to 6 m/s and the pair stopped gaining energy (the test
+        ``test_eol_cube_landing_on_a_light_slab_does_not_ring``); the diagonal alone (no
+        neighbours) still left 16 m/s and a 1.2 J gain, and the bound over all rows of the
+        partner (much softer rows) let the cube sink 1.6 cm into the slab, and the relaxation of
+        that overlap threw it back higher than it fell."""
+        per = int(np.prod(self._ccells))
+        slot = system.collider - len(self._colliders)
+        g = np.linalg.norm(system.jsum, axis=1)
+        near = (system.S != 0.0) & (slot[:, None] == slot[None, :])  # rows of blocks that share nodes
+        W = give * g * (near @ g)
+        if not np.any(W > 0.0):
+            return system
+        cell = system.ids % per
+        tau = self.state.time - self._span[0]
+        r = np.zeros(system.m)
+        a = np.zeros(system.m)
+        for k, ms in enumerate(self._moving):
+            if ms.compliance is not None:
+                on = slot == k
+                r[on], a[on] = ms.rate[cell[on]], ms.acc[cell[on]]
+        S = system.S.copy()
+        S[np.diag_indices(system.m)] += W
+        return replace(system, S=S, Jw=system.Jw + W * (r * tau - a), Ja=system.Ja + W * r)
+
+    def _load_exchange(self) -> None:
+        """Each partner's push rate per collision cell over the last ``advance`` (``EolState.exchange``),
+        and nothing pushed yet in this one."""
+        per = int(np.prod(self._ccells)) if self._surface is not None else 0
+        ex = self.state.exchange
+        for ms in self._moving:
+            ms.rate, ms.acc = np.zeros(per), np.zeros(per)
+            if ms.compliance is not None and len(ex):
+                mine = ex[:, 0] == ms.key
+                ms.rate[ex[mine, 1].astype(np.int64)] = ex[mine, 2]
+
+    def _save_exchange(self, span: float) -> None:
+        """What the rows pushed each yielding partner with over the ``advance`` just ended, as a rate
+        per collision cell (the next advance's ``_exchange_terms``)."""
+        rows = []
+        for ms in self._moving:
+            if ms.compliance is not None and ms.acc is not None and span > 0.0:
+                cell = np.flatnonzero(ms.acc)
+                rows.append(np.column_stack([np.full(len(cell), float(ms.key)), cell, ms.acc[cell] / span]))
+        self.state.exchange = np.concatenate(rows) if rows else np.zeros((0, 3))
+
+    def _push_taken(self, system: ContactSystem, lam: np.ndarray) -> None:
+        """Add this step's multipliers to what each yielding partner has been pushed with."""
+        per = int(np.prod(self._ccells))
+        slot = system.collider - len(self._colliders)
+        for k, ms in enumerate(self._moving):
+            if ms.compliance is not None:
+                on = (slot == k) & (lam != 0.0)
+                np.add.at(ms.acc, system.ids[on] % per, lam[on])
 
     def contact_rows(self) -> ContactRows | None:
         """The contact constraints of Eq. (28) at the current state, read back with J (None: no

@@ -688,20 +688,21 @@ class PbdBody(Body):
                         self.contact_margin, ms.reach, ms.friction, 1.0 / h, ms.impulse],
             )
 
-    def set_moving_surfaces(self, surfaces: Sequence[tuple[int, np.ndarray, np.ndarray, np.ndarray, float]]) -> None:
+    def set_moving_surfaces(self, surfaces: Sequence[tuple]) -> None:
         """Surfaces of other bodies that move on their own over the coming frame and may touch this
-        one: (key, vertices at the frame start (V, 3), at its end (V, 3), faces (M, 3), friction).
+        one: (key, vertices at the frame start (V, 3), at its end (V, 3), faces (M, 3), friction[,
+        compliance]; the compliance is not used: the partner is kinematic over the interval).
         Over the frame they move linearly between the two; this body's surface particles are kept
         out of them like out of a moving collider, and the momentum that takes is collected per
         vertex (``moving_surface_impulses``) for the World to hand to their bodies. Called by the
         World before each ``advance``; an empty list ends the coupling."""
         self._require_bound()
         d = self._device
-        layout = [(k, len(p0), len(f)) for k, p0, _, f, _ in surfaces]
+        layout = [(k, len(p0), len(f)) for k, p0, _, f, *_ in surfaces]
         if layout != [(ms.key, ms.p0.shape[0], ms.indices.shape[0] // 3) for ms in self._moving]:
             self._graph = None  # the frame's launches change
             self._moving = []
-            for key, p0, _, faces, mu in surfaces:
+            for key, p0, _, faces, mu, *_ in surfaces:
                 f32 = np.ascontiguousarray(faces, dtype=np.int32)
                 cur = wp.array(np.asarray(p0, dtype=np.float32), dtype=wp.vec3, device=d)
                 indices = wp.array(f32.ravel(), dtype=wp.int32, device=d)
@@ -714,7 +715,7 @@ class PbdBody(Body):
                 # how far from the surface a query looks (a particle deep inside is still found);
                 # fixed with the launches, which a CUDA graph records
                 self._moving[-1].reach = 2.0 * float(np.linalg.norm(np.ptp(p0, axis=0))) + self.contact_margin
-        for ms, (_, p0, p1, _, _) in zip(self._moving, surfaces):
+        for ms, (_, p0, p1, *_) in zip(self._moving, surfaces):
             ms.p0.assign(np.asarray(p0, dtype=np.float32))
             ms.p1.assign(np.asarray(p1, dtype=np.float32))
             ms.impulse.zero_()
