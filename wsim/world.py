@@ -425,8 +425,9 @@ def _couple_surfaces(pusher: Body, targets: Sequence[Body], index: dict[int, int
     over the next interval (``add_vertex_impulses``): one interval late, the momentum exact.
     ``end`` caches the targets' points at the interval's end: every pusher of a target reads
     them after the target's one step of the interval (in a pile of 16 bodies each was read back
-    up to 15 times an interval), with the target's ``surface_compliance`` where it has one (EoL:
-    how much it gives way under the push, which the pusher's rows then share with it). Targets
+    up to 15 times an interval), with the target's ``surface_compliance`` where it has one and the
+    pusher ``takes_compliance`` (EoL: how much it gives way under the push, which the pusher's rows
+    then share with it; read once per target and interval). Targets
     are keyed by their ``index`` in the World (stable across a checkpoint)."""
     from wsim.contact import pair_friction
 
@@ -441,7 +442,7 @@ def _couple_surfaces(pusher: Body, targets: Sequence[Body], index: dict[int, int
         if (np.all(np.maximum(p0.max(axis=0), p1.max(axis=0)) >= lo)
                 and np.all(np.minimum(p0.min(axis=0), p1.min(axis=0)) <= hi)):
             mu = pair_friction(getattr(pusher, "friction", None), getattr(b, "friction", None))
-            if give is None and hasattr(b, "surface_compliance"):
+            if give is None and getattr(pusher, "takes_compliance", False) and hasattr(b, "surface_compliance"):
                 give = b.surface_compliance()
                 end[id(b)] = (p1, give)
             surfaces.append((index[id(b)], p0, p1, b.faces, mu, give))

@@ -231,6 +231,10 @@ class EolBody(VertexImpulses, Body):
     (``SimulationDiverged``, "material left the grid").
     """
 
+    # its rows share a push with a partner's give (``set_moving_surfaces``' compliance): the World
+    # reads the partners' ``surface_compliance`` for it, and for no pusher that would ignore it
+    takes_compliance = True
+
     def __init__(
         self,
         mesh: Any,
@@ -966,7 +970,6 @@ class EolBody(VertexImpulses, Body):
             moving.append(ms)
         self._moving = moving
         self._contact_slots(len(self._colliders) + len(moving))
-        self._load_exchange()
         P = 0 if self._surface is None else self._surface.sample_face.shape[0]
         for ms in moving:
             if ms.hits is None:  # per contact sample: its row, barycentric weights and face on this surface
@@ -1479,7 +1482,7 @@ class EolBody(VertexImpulses, Body):
         slot = system.collider - len(self._colliders)
         for k, ms in enumerate(self._moving):
             if ms.compliance is not None:
-                on = (slot == k) & (lam != 0.0)
+                on = slot == k
                 np.add.at(ms.acc, system.ids[on] % per, lam[on])
 
     def contact_rows(self) -> ContactRows | None:
