@@ -371,34 +371,6 @@ def surface_reaction(
 
 
 @wp.kernel
-def row_compliance(
-    mesh: wp.uint64,
-    hit_row: wp.array(dtype=wp.int32),
-    hit_bary: wp.array(dtype=wp.vec3d),
-    hit_face: wp.array(dtype=wp.int32),
-    row_of_slot: wp.array(dtype=wp.int32),
-    compliance: wp.array(dtype=wp.float64),
-    out: wp.array(dtype=wp.float64),
-    at: int,
-):
-    """out[at + r] = max over the samples of packed row r inside the partner's surface (``hit_*``
-    from ``surface_rows``) of the partner's compliance at the sample's nearest point, sum_k b_k c_k
-    over its face's vertices (``compliance``: velocity change per unit impulse [1/kg],
-    ``kernels.eol_loads.vertex_compliance``). The largest, so that the row's share of the partner's
-    give is not underestimated (``EolBody._exchange_terms``)."""
-    i = wp.tid()
-    r = hit_packed_row(hit_row, row_of_slot, i)
-    if r < 0:
-        return
-    f = hit_face[i]
-    b = hit_bary[i]
-    c = wp.float64(0.0)
-    for k in range(3):
-        c += wp.max(b[k], wp.float64(0.0)) * compliance[wp.mesh_get_index(mesh, 3 * f + k)]
-    wp.atomic_max(out, at + r, c)
-
-
-@wp.kernel
 def compact_rows(
     acc: wp.array2d(dtype=wp.float64),
     flag: wp.array(dtype=wp.int32),
@@ -632,3 +604,202 @@ def accumulate(total: wp.array(dtype=wp.vec3d), part: wp.array(dtype=wp.vec3d)):
     i = wp.tid()
     total[i] = total[i] + part[i]
 
+
+
+# -- contact between EoL bodies in one QP (Eq. 29 across objects; issue 18) -------------------------
+
+vec8d = wp.types.vector(length=8, dtype=wp.float64)
+
+
+@wp.func
+def cell_weights(surf: ContactSurface, yp: wp.vec3d):
+    """The grid cell holding intermediate point yp: its first node's flat index, the 8 corners'
+    row weights Phi_c m_c / sum Phi m (the mass-weighted velocity of ``accumulate_row``; zero on
+    nodes without mass), sum Phi m (zero: no corner holds material) and yp's local coordinates."""
+    cell, t = sample_cell(surf, yp)
+    ny = surf.grid.shape[1]
+    nz = surf.grid.shape[2]
+    base = (cell[0] * ny + cell[1]) * nz + cell[2]
+    pm = wp.float64(0.0)
+    for c in range(8):
+        pm += corner_weight(c, t) * surf.mass[base + (c // 4) * ny * nz + ((c // 2) % 2) * nz + c % 2]
+    weights = vec8d()
+    if pm > wp.float64(0.0):
+        for c in range(8):
+            weights[c] = corner_weight(c, t) * surf.mass[base + (c // 4) * ny * nz + ((c // 2) % 2) * nz + c % 2] / pm
+    return base, weights, pm, t
+
+
+@wp.func
+def corner_offset(c: int) -> wp.vec3d:
+    """Corner c of the unit cell, (i, j, k) with c = 4 i + 2 j + k."""
+    return wp.vec3d(wp.float64(c // 4), wp.float64((c // 2) % 2), wp.float64(c % 2))
+
+
+@wp.func
+def centred_weights(weights: vec8d, t: wp.vec3d) -> vec8d:
+    """Cell weights (``cell_weights``) changed so that their centroid is the sample, where it can
+    be with weights >= 0: phi_c = w_c (1 + s b . (c - cbar)) with cbar = sum w_c c the weights'
+    centroid, b = C^+ (t - cbar) (C = sum w_c (c - cbar)(c - cbar)^T, unit-cell coordinates, its
+    pseudo-inverse over directions the weights spread in) and s <= 1 the largest fraction that
+    keeps every phi_c >= 0. The weights still sum to one and vanish where w_c does (nodes without
+    material); their first moment moves from cbar to t. A row's impulse on the two bodies then
+    acts at the same point, so the pair's angular momentum is kept: with the mass-weighted
+    centroids (each inside its own body's material) a frictionless glancing blow of two 6-cell
+    spheres gained 4.9 % of |L|."""
+    cbar = wp.vec3d()
+    for c in range(8):
+        cbar += weights[c] * corner_offset(c)
+    C = wp.mat33d()
+    for c in range(8):
+        d = corner_offset(c) - cbar
+        C += weights[c] * wp.outer(d, d)
+    Q, e = wp.eig3(C)
+    r = t - cbar
+    b = wp.vec3d()
+    for k in range(3):
+        if e[k] > wp.float64(1.0e-6):
+            q = wp.vec3d(Q[0, k], Q[1, k], Q[2, k])
+            b += (wp.dot(q, r) / e[k]) * q
+    s = wp.float64(1.0)
+    for c in range(8):
+        if weights[c] > wp.float64(0.0):
+            g = wp.dot(b, corner_offset(c) - cbar)
+            if g < wp.float64(0.0):
+                s = wp.min(s, wp.float64(-1.0) / g)
+    out = vec8d()
+    for c in range(8):
+        out[c] = weights[c] * (wp.float64(1.0) + s * wp.dot(b, corner_offset(c) - cbar))
+    return out
+
+
+@wp.func
+def cell_velocity(surf: ContactSurface, base: int, weights: vec8d, field: wp.array(dtype=wp.vec3d)) -> wp.vec3d:
+    """World velocity sum_c weight_c Q field_c of a cell (``cell_weights``), Q = to_axes^T (the
+    body's velocity axes -> world)."""
+    ny = surf.grid.shape[1]
+    nz = surf.grid.shape[2]
+    v = wp.vec3d()
+    for c in range(8):
+        v += weights[c] * field[base + (c // 4) * ny * nz + ((c // 2) % 2) * nz + c % 2]
+    return wp.transpose(surf.to_axes) * v
+
+
+@wp.kernel
+def world_surface(surf: ContactSurface, out: wp.array(dtype=wp.vec3)):
+    """The tracked surface's vertices in the world, x = F y + T (float32: a Warp mesh's points)."""
+    i = wp.tid()
+    x = surf.F * surf.y[i] + surf.T
+    out[i] = wp.vec3(float(x[0]), float(x[1]), float(x[2]))
+
+
+#: floats of one pair sample's record (``pair_samples``)
+PAIR_RECORD = 51
+
+
+@wp.kernel
+def pair_samples(
+    own: ContactSurface,
+    other: ContactSurface,
+    other_inverse: wp.mat33d,
+    mesh: wp.uint64,
+    max_dist: float,
+    own_is_a: int,
+    pair: int,
+    own_w: wp.array(dtype=wp.vec3d),
+    own_a: wp.array(dtype=wp.vec3d),
+    other_w: wp.array(dtype=wp.vec3d),
+    other_a: wp.array(dtype=wp.vec3d),
+    count: wp.array(dtype=wp.int32),
+    rec_i: wp.array2d(dtype=wp.int32),
+    rec_f: wp.array2d(dtype=wp.float64),
+):
+    """The samples of one EoL body inside another's closed surface (``mesh``: the other's tracked
+    surface in the world, where it is at this step), each one record of a contact row of both
+    bodies (``wsim.eol.pairs``). Sample s, at x_s with area element n dGamma, inside the other body
+    (nearest face normal n_B, depth d) constrains the bodies' relative velocity there,
+    c_s . (v_own(x_s) - v_other(x_s)) with c_s = -|n dGamma . n_B| n_B (``pushed_area``): the
+    own surface's share of Eq. (27) with the other body's velocity in place of a collider's, so
+    that its impulse -lambda c_s on the own body is +lambda c_s on the other (equal and opposite
+    at the same point: the pair's momentum is exact). Each body's velocity at x_s is the
+    mass-weighted mean of its cell's nodes (``cell_weights``, against flinging nodes that hold a
+    sliver of material) with the weights' centroid moved onto x_s (``centred_weights``: both
+    impulses act at x_s, so the pair's angular momentum is kept too); a sample in a cell of either
+    body that holds no material is skipped. The row is the pair's (``pair``) collision cell of body A
+    (``own_is_a``: this body, else the other) at x_s: samples of both bodies in one cell make one
+    row, the paper's collision grid of Sec. 3.5.
+
+    Record (``rec_i``): pair, own_is_a, own cell's first node, other's, A's collision cell.
+    ``rec_f`` (``PAIR_RECORD`` floats): own weights (8), other's (8), own node masses (8), other's
+    (8), c_s (3, world), overlap volume |n dGamma . n_B| d (1), own velocity at x_s from w and a
+    (3 + 3, world), other's (3 + 3), x_s (3). Records past the buffer's rows are counted, not
+    written: the caller grows the buffer and launches again."""
+    i = wp.tid()
+    yp, x, an = sample_world(own, i)
+    yo = other_inverse * (x - other.T)
+    g = (yo - other.grid.origin) / other.grid.h
+    for d in range(3):  # outside the other's grid box: not inside its surface
+        if g[d] < wp.float64(0.0) or g[d] > wp.float64(other.grid.shape[d] - 1):
+            return
+    p = wp.vec3(float(x[0]), float(x[1]), float(x[2]))
+    q = query_inside(mesh, p, max_dist, 1)
+    if not (q.result and q.sign < 0.0):
+        return
+    base_o, wo, pm_o, t_o = cell_weights(own, yp)
+    base_b, wb, pm_b, t_b = cell_weights(other, yo)
+    if pm_o <= wp.float64(0.0) or pm_b <= wp.float64(0.0):
+        return
+    wo = centred_weights(wo, t_o)
+    wb = centred_weights(wb, t_b)
+    closest = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+    n = wp.mesh_eval_face_normal(mesh, q.face)
+    cn = wp.vec3d(wp.float64(n[0]), wp.float64(n[1]), wp.float64(n[2]))
+    coeff = pushed_area(an, cn)
+    vol = wp.abs(wp.dot(an, cn)) * wp.float64(wp.length(closest - p))
+    slot = wp.atomic_add(count, 0, 1)
+    if slot >= rec_i.shape[0]:
+        return
+    cell = wp.vec3i()
+    k = own.block
+    nc = own.ccells
+    if own_is_a != 0:
+        cell, t = sample_cell(own, yp)
+    else:
+        cell, t = sample_cell(other, yo)
+        k = other.block
+        nc = other.ccells
+    rec_i[slot, 0] = pair
+    rec_i[slot, 1] = own_is_a
+    rec_i[slot, 2] = base_o
+    rec_i[slot, 3] = base_b
+    rec_i[slot, 4] = ((cell[0] // k) * nc[1] + cell[1] // k) * nc[2] + cell[2] // k
+    for c in range(8):
+        rec_f[slot, c] = wo[c]
+        rec_f[slot, 8 + c] = wb[c]
+        rec_f[slot, 16 + c] = own.mass[base_o + (c // 4) * own.grid.shape[1] * own.grid.shape[2]
+                                      + ((c // 2) % 2) * own.grid.shape[2] + c % 2]
+        rec_f[slot, 24 + c] = other.mass[base_b + (c // 4) * other.grid.shape[1] * other.grid.shape[2]
+                                        + ((c // 2) % 2) * other.grid.shape[2] + c % 2]
+    vw = cell_velocity(own, base_o, wo, own_w)
+    va = cell_velocity(own, base_o, wo, own_a)
+    bw = cell_velocity(other, base_b, wb, other_w)
+    ba = cell_velocity(other, base_b, wb, other_a)
+    for d in range(3):
+        rec_f[slot, 32 + d] = coeff[d]
+        rec_f[slot, 36 + d] = vw[d]
+        rec_f[slot, 39 + d] = va[d]
+        rec_f[slot, 42 + d] = bw[d]
+        rec_f[slot, 45 + d] = ba[d]
+        rec_f[slot, 48 + d] = x[d]
+    rec_f[slot, 35] = vol
+
+
+@wp.kernel
+def add_node_changes(nodes: wp.array(dtype=wp.int32), d0: wp.array(dtype=wp.vec3d), d1: wp.array(dtype=wp.vec3d),
+                     w: wp.array(dtype=wp.vec3d), a: wp.array(dtype=wp.vec3d)):
+    """w[nodes] += d0 and a[nodes] += d1 (velocity changes the host computed for the nodes that
+    contact rows between bodies touch; each node once)."""
+    i = wp.tid()
+    s = nodes[i]
+    w[s] = w[s] + d0[i]
+    a[s] = a[s] + d1[i]

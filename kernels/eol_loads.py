@@ -72,39 +72,6 @@ def scatter_point_forces(
 
 
 @wp.kernel
-def vertex_compliance(
-    y: wp.array(dtype=wp.vec3d),
-    mass: wp.array3d(dtype=wp.float64),
-    grid: Grid,
-    out: wp.array(dtype=wp.float64),
-):
-    """out_i = sum_s Phi_s(y_i)^2 / sum_s Phi_s(y_i) m_s over the nodes with mass of y_i's cell [1/kg]:
-    the velocity change of the point y_i (interpolated with Phi) per unit impulse delivered there
-    as a surface force (``scatter_point_forces``, mass-weighted: node s is accelerated by
-    Phi_s f / sum Phi m), before the elastic forces spread it. Used by the partners that push this
-    body (issue 18: how much its surface gives way under a push). 0 where no node has mass."""
-    i = wp.tid()
-    g = (y[i] - grid.origin) / grid.h
-    cell = wp.vec3i()
-    for d in range(3):
-        top = grid.shape[d] - 1
-        g[d] = wp.clamp(g[d], wp.float64(0.0), wp.float64(top))
-        cell[d] = wp.min(int(g[d]), top - 1)
-    t = local_coordinates(g, cell)
-    num = wp.float64(0.0)
-    den = wp.float64(0.0)
-    for c in range(8):
-        m = mass[cell[0] + c // 4, cell[1] + (c // 2) % 2, cell[2] + c % 2]
-        if m > wp.float64(0.0):
-            w = corner_weight(c, t)
-            num += w * w
-            den += w * m
-    out[i] = wp.float64(0.0)
-    if den > wp.float64(0.0):
-        out[i] = num / den
-
-
-@wp.kernel
 def outside_margin(
     y: wp.array(dtype=wp.vec3d),
     grid: Grid,

@@ -18,7 +18,7 @@ import math
 import time as _time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -201,19 +201,17 @@ class World:
             self._lockstep_graphs: dict = {}  # the recorded lockstep frame (CUDA)
             # explicit coupling: bodies that are pushed (BEM, EoL) and that push (EoL, PBD). A pusher
             # keeps itself out of its targets' surfaces after they have stepped and hands them the
-            # momentum (``_targets``): EoL bodies push BEM bodies and heavier EoL bodies, PBD bodies
-            # push every BEM and EoL body, so pushers step in that order. The lighter of two EoL
-            # bodies pushes: a pusher meets its target's surface velocity, and the target is
-            # handed that momentum, which flings a target much lighter than the pusher
-            # (``tools/study_coupling.py``).
+            # momentum (``_targets``): EoL bodies push BEM bodies, PBD bodies push every BEM and EoL
+            # body, so they step in that order. EoL bodies do not push each other: touching EoL
+            # bodies step together with one QP (``EolBody.advance_group``).
             self._pushed = [b for b in self.bodies if hasattr(b, "add_vertex_impulses")] if self.body_contact else []
+            self._eol = [b for b in self.bodies if hasattr(b, "advance_group")] if self.body_contact else []
+            eol = {id(b) for b in self._eol}
             pushers = [b for b in self.bodies if hasattr(b, "set_moving_surfaces")] if self._pushed else []
-            self._pushers = sorted(pushers, key=lambda b: (hasattr(b, "advance_together"),
-                                                           0.0 if hasattr(b, "advance_together") else -b.mass))
-            rank = {id(b): i for i, b in enumerate(self._pushers)}
-            self._targets = {id(p): [b for b in self._pushed if b is not p and rank.get(id(b), -1) < rank[id(p)]]
-                             for p in self._pushers}
-            self._pushers = [p for p in self._pushers if self._targets[id(p)]]
+            self._targets = {id(p): [b for b in self._pushed if b is not p and not (id(p) in eol and id(b) in eol)]
+                             for p in pushers}
+            self._pushers = [p for p in pushers if self._targets[id(p)] and id(p) not in eol]  # PBD
+            self._eol_targets = {id(p): self._targets[id(p)] for p in self._eol}
             if self.body_contact:  # bodies that can touch: participants of one dt
                 by_dt: dict[float, list[Body]] = {}
                 for b in self.bodies:
@@ -256,23 +254,25 @@ class World:
             self._advance_interval((self.frame * k + i) / (self.fps * k), (self.frame * k + i + 1) / (self.fps * k))
         self.frame += 1
 
-    def _timed(self, stage: str, fn: Callable, *args) -> None:
+    def _timed(self, stage: str, fn: Callable, *args) -> Any:
         """Run fn(*args) and add its seconds to ``timings[stage]`` (after a device synchronization
-        when ``profile`` is on, so GPU time lands in its own stage)."""
+        when ``profile`` is on, so GPU time lands in its own stage); returns what fn returns."""
         t = _time.perf_counter()
-        fn(*args)
+        out = fn(*args)
         if self.profile and not self.device.is_cpu:
             import warp as wp
 
             wp.synchronize_device(self.device)
         self.timings[stage] = self.timings.get(stage, 0.0) + _time.perf_counter() - t
+        return out
 
     def _advance_interval(self, t0: float, t1: float) -> None:
         grouped = {id(b) for bodies, _ in self._groups for b in bodies} | {id(b) for b in self._lockstep}
         pushers = self._pushers
-        late = {id(b) for b in pushers}
+        late = {id(b) for b in pushers} | {id(b) for b in self._eol}
+        coupled = pushers or any(self._eol_targets.values())
         start: dict[int, np.ndarray] = {}
-        if pushers:
+        if coupled:
             self._timed("coupling", lambda: start.update({id(b): b.points() for b in self._pushed}))
         g = float(np.linalg.norm(self.gravity))
         # bodies that push nothing go first (their surfaces are then known over the interval) ...
@@ -281,24 +281,34 @@ class World:
                 self._timed(_stage(body), body.advance, t0, t1)
         for bodies, joints in self._groups:
             self._timed("bem", _advance_group, bodies, joints, t1, self.device, self.body_contact)
-        # ... then each pusher after the bodies it pushes (EoL bodies in order, then PBD)
+        end: dict[int, np.ndarray] = {}  # each target's points at the interval's end (read once per interval)
+        # ... then the EoL bodies, those that may touch in one group each, after the BEM bodies they push ...
+        if self._eol:
+            for p in self._eol:
+                if self._eol_targets[id(p)]:
+                    self._timed("coupling", _couple_surfaces, p, self._eol_targets[id(p)], self._index, start, end,
+                                t1 - t0, g)
+            for group in self._timed("coupling", _touching, self._eol, t1 - t0, g):
+                if len(group) == 1:
+                    self._timed("eol", group[0].advance, t0, t1)
+                else:
+                    self._timed("eol", type(group[0]).advance_group, group, [self._index[id(b)] for b in group], t0, t1)
+        # ... then the PBD bodies, which push BEM and EoL bodies
         lockstep = {id(b) for b in self._lockstep}
-        end: dict[int, tuple] = {}  # each target's points (and give) once it has stepped (read once per interval)
         for p in pushers:
             self._timed("coupling", _couple_surfaces, p, self._targets[id(p)], self._index, start, end, t1 - t0, g)
             if id(p) not in lockstep:
                 self._timed(_stage(p), p.advance, t0, t1)
-                end.pop(id(p), None)  # read before its step: not its end
         if self._lockstep:
             self._timed("pbd", type(self._lockstep[0]).advance_together, self._lockstep, t0, t1, self._lockstep_graphs)
-        if pushers:
+        if coupled:
             self._timed("coupling", self._exchange, t1 - t0)
 
     def _exchange(self, interval: float) -> None:
         """Hand every pushed body what the pushers pushed it with over the interval just stepped
         (keys: the bodies' indices in ``bodies``)."""
         impulses: dict[int, np.ndarray] = {}
-        for b in self._pushers:
+        for b in self._pushers + [p for p in self._eol if self._eol_targets[id(p)]]:
             for key, J in b.moving_surface_impulses().items():
                 impulses[key] = impulses.get(key, 0.0) + J
         for key, J in impulses.items():
@@ -417,7 +427,7 @@ def _advance_group(bodies: list[Body], joints: list, t1: float, device, contact:
 
 
 def _couple_surfaces(pusher: Body, targets: Sequence[Body], index: dict[int, int], start: dict[int, np.ndarray],
-                     end: dict[int, tuple], interval: float, g: float) -> None:
+                     end: dict[int, np.ndarray], interval: float, g: float) -> None:
     """Explicit two-way coupling between bodies (issue 18): a body that takes moving surfaces (EoL,
     PBD) gets the surfaces of its ``targets`` it may reach in this coupling interval (their
     vertices at its start and end: those bodies have already stepped), with the larger of the two
@@ -425,10 +435,8 @@ def _couple_surfaces(pusher: Body, targets: Sequence[Body], index: dict[int, int
     over the next interval (``add_vertex_impulses``): one interval late, the momentum exact.
     ``end`` caches the targets' points at the interval's end: every pusher of a target reads
     them after the target's one step of the interval (in a pile of 16 bodies each was read back
-    up to 15 times an interval), with the target's ``surface_compliance`` where it has one and the
-    pusher ``takes_compliance`` (EoL: how much it gives way under the push, which the pusher's rows
-    then share with it; read once per target and interval). Targets
-    are keyed by their ``index`` in the World (stable across a checkpoint)."""
+    up to 15 times an interval). Targets are keyed by their ``index`` in the World (stable across
+    a checkpoint)."""
     from wsim.contact import pair_friction
 
     x = pusher.points()
@@ -437,16 +445,40 @@ def _couple_surfaces(pusher: Body, targets: Sequence[Body], index: dict[int, int
     surfaces = []
     for b in targets:
         if id(b) not in end:
-            end[id(b)] = (b.points(), None)
-        p0, (p1, give) = start[id(b)], end[id(b)]
+            end[id(b)] = b.points()
+        p0, p1 = start[id(b)], end[id(b)]
         if (np.all(np.maximum(p0.max(axis=0), p1.max(axis=0)) >= lo)
                 and np.all(np.minimum(p0.min(axis=0), p1.min(axis=0)) <= hi)):
             mu = pair_friction(getattr(pusher, "friction", None), getattr(b, "friction", None))
-            if give is None and getattr(pusher, "takes_compliance", False) and hasattr(b, "surface_compliance"):
-                give = b.surface_compliance()
-                end[id(b)] = (p1, give)
-            surfaces.append((index[id(b)], p0, p1, b.faces, mu, give))
+            surfaces.append((index[id(b)], p0, p1, b.faces, mu))
     pusher.set_moving_surfaces(surfaces)
+
+
+def _touching(bodies: Sequence[Body], interval: float, g: float) -> list[list[Body]]:
+    """EoL bodies that may touch each other within the coming interval, as groups (union-find over
+    their surfaces' boxes, each grown by how far it can move: ``max_speed`` times the interval, the
+    fall under gravity and a cell); a body alone is a group of one."""
+    boxes = []
+    for b in bodies:
+        x = b.points()
+        grow = _max_speed(b) * interval + g * interval**2 + b.grid.h
+        boxes.append((x.min(axis=0) - grow, x.max(axis=0) + grow))
+    parent = list(range(len(bodies)))
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i in range(len(bodies)):
+        for j in range(i + 1, len(bodies)):
+            if np.all(boxes[i][1] >= boxes[j][0]) and np.all(boxes[j][1] >= boxes[i][0]):
+                parent[find(i)] = find(j)
+    groups: dict[int, list[Body]] = {}
+    for i, b in enumerate(bodies):
+        groups.setdefault(find(i), []).append(b)
+    return list(groups.values())
 
 
 def _max_speed(body: Body) -> float:
@@ -460,13 +492,15 @@ def _automatic_coupling_steps(bodies: Sequence[Body], frame_dt: float) -> int:
     """Coupling intervals per frame when the World is not told (``coupling_dt=None``): 1 unless
     bodies push others (``World._targets``). With PBD bodies and BEM or EoL bodies: the largest k
     that splits the frame into whole numbers of every BEM body's steps and gives each interval at
-    least one substep of every PBD body; with EoL bodies pushing (and no PBD): the smallest k
-    whose intervals hold whole BEM steps and are no longer than ``EOL_COUPLING_DT``."""
+    least one substep of every PBD body; with EoL bodies pushing BEM bodies (and no PBD): the
+    smallest k whose intervals hold whole BEM steps and are no longer than ``EOL_COUPLING_DT``.
+    EoL bodies alone keep the frame: touching EoL bodies share one QP, with no lag."""
     pbd = [b for b in bodies if hasattr(b, "advance_together")]
-    eol = [b for b in bodies if hasattr(b, "set_moving_surfaces") and hasattr(b, "add_vertex_impulses")]
+    eol = [b for b in bodies if hasattr(b, "advance_group")]
     pushed = [b for b in bodies if hasattr(b, "add_vertex_impulses")]
-    if not (pbd and pushed) and not (eol and len(pushed) > 1):
-        return 1  # nothing pushes anything (an EoL body pushes a BEM or another EoL body)
+    bem = [b for b in pushed if hasattr(b, "constraint_begin")]
+    if not (pbd and pushed) and not (eol and bem):
+        return 1  # nothing pushes anything (an EoL body pushes a BEM body, a PBD body both)
     steps = []
     for b in bodies:
         dt = getattr(b, "dt", None) if hasattr(b, "constraint_begin") else None
@@ -478,7 +512,7 @@ def _automatic_coupling_steps(bodies: Sequence[Body], frame_dt: float) -> int:
     if pbd and pushed:
         limit = min(b.substeps_for(frame_dt) for b in pbd)
         return max(k for k in range(1, limit + 1) if all(n % k == 0 for n in steps))
-    # EoL bodies pushing: intervals of at most EOL_COUPLING_DT that hold whole BEM steps
+    # EoL bodies pushing BEM bodies: intervals of at most EOL_COUPLING_DT that hold whole BEM steps
     want = math.ceil(frame_dt / EOL_COUPLING_DT - 1e-9)
     fits = [k for k in range(1, max([want] + steps) + 1) if all(n % k == 0 for n in steps)]
     return min([k for k in fits if k >= want] or [max(fits)])

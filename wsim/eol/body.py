@@ -42,8 +42,10 @@ import warp as wp
 from wsim import mesh as wmesh
 from wsim.body import Body, VertexImpulses
 from wsim.colliders import Surfaces
+from wsim.eol import pairs
 from wsim.eol.advection import advect_arrays, check_scheme, extend_reference_map
-from wsim.eol.contact import ContactRows, ContactSystem, block_nodes, rows_from_blocks, solve_contact, surface_samples
+from wsim.eol.contact import (ContactRows, ContactSolution, ContactSystem, block_nodes, rows_from_blocks, solve_contact,
+                              surface_samples)
 from wsim.eol.elastic import hourglass_forces, sample_forces, viscous_forces
 from wsim.eol.grid import EolGrid, make_grid, material_samples
 from wsim.eol.split import split_on_device, unpack_fields
@@ -102,9 +104,6 @@ class _MovingSurface:
     friction: np.ndarray | None = None  # friction impulse this body took from it this step (world)
     friction_moment: np.ndarray | None = None  # its moment about the world origin
     friction_impulse: np.ndarray | None = None  # (V, 3) the friction part handed to it over the advance
-    compliance: wp.array | None = None  # (V,) its give per unit impulse [1/kg] (None: taken as rigid)
-    rate: np.ndarray | None = None  # per collision cell: the push [N] being handed to it this advance
-    acc: np.ndarray | None = None  # per collision cell: what the rows have pushed it with so far this advance [N s]
 
 
 @dataclass(frozen=True)
@@ -230,10 +229,6 @@ class EolBody(VertexImpulses, Body):
     needs a grid larger than 3x its first size on an axis (it flies apart) stops the run
     (``SimulationDiverged``, "material left the grid").
     """
-
-    # its rows share a push with a partner's give (``set_moving_surfaces``' compliance): the World
-    # reads the partners' ``surface_compliance`` for it, and for no pusher that would ignore it
-    takes_compliance = True
 
     def __init__(
         self,
@@ -812,8 +807,6 @@ class EolBody(VertexImpulses, Body):
         self._allocate_grid_arrays()
         if self._surface is not None:  # rows laid out on the new grid
             self._contact_slots(self._row_groups, regrid=True)
-            st.exchange = np.zeros((0, 3))  # per collision cell of the old layout
-            self._load_exchange()
         self._force_pass()
 
     def _grow_grid(self) -> bool:
@@ -915,7 +908,7 @@ class EolBody(VertexImpulses, Body):
     def set_moving_surfaces(self, surfaces: Sequence[tuple]) -> None:
         """Surfaces of other bodies that move on their own over the coming ``advance`` and may touch
         this one (issue 18): (key, vertices at its start (V, 3), at its end (V, 3), faces (M, 3),
-        friction[, compliance (V,)]). They move linearly between the two; this body's contact rows
+        friction). They move linearly between the two; this body's contact rows
         (Eq. 28) keep it out of them as out of a moving collider, each at the velocity of its
         vertices, and the opposite of what the rows push with is collected per vertex
         (``moving_surface_impulses``) for the World to hand to their bodies. Called by the World
@@ -923,17 +916,13 @@ class EolBody(VertexImpulses, Body):
         volume constraint against the surface moving with its vertices; Coulomb friction with
         coefficient ``friction`` acts at the grid nodes it pushes, relative to the rigid motion that
         best fits the surface's vertices over the interval (``kernels.eol_contact.node_friction``).
-
-        ``compliance`` (optional, [1/kg] per vertex: how fast the partner's surface gives way per
-        unit impulse, ``surface_compliance``) makes the rows share the push with a partner that
-        yields (``_exchange_terms``); without it the partner is taken as rigid over the interval.
-        ``key`` must name the same partner from one ``advance`` to the next (the World uses its
-        index): what this body pushed it with last time is part of the state."""
+        Other EoL bodies are not moving surfaces: touching EoL bodies share one QP
+        (``advance_group``)."""
         self._require_bound()
         d = self._device
         keep = {ms.key: ms for ms in self._moving}
         moving = []
-        for key, p0, p1, faces, mu, *extra in surfaces:
+        for key, p0, p1, faces, mu in surfaces:
             p0 = np.asarray(p0, dtype=np.float64)
             ms = keep.get(key)
             if ms is None or ms.p0.shape[0] != len(p0) or ms.n_faces != len(faces):
@@ -953,18 +942,6 @@ class EolBody(VertexImpulses, Body):
             ms.impulse.zero_()
             ms.friction_impulse = np.zeros((len(p0), 3))
             ms.mu = float(mu)
-            c = extra[0] if extra else None
-            if c is None:
-                ms.compliance = None
-            else:
-                c = np.asarray(c, dtype=np.float64).reshape(-1)
-                if c.shape != (len(p0),) or not np.all(np.isfinite(c)) or np.any(c < 0.0):
-                    raise InvalidParameter(f"body '{self.name}': the compliance of moving surface {key} must be "
-                                           f"{len(p0)} finite values >= 0 [1/kg], one per vertex")
-                if ms.compliance is None or ms.compliance.shape[0] != len(c):
-                    ms.compliance = wp.array(c, dtype=wp.float64, device=d)
-                else:
-                    ms.compliance.assign(c)
             both = np.concatenate([p0, np.asarray(p1)])
             ms.reach = 2.0 * float(np.linalg.norm(np.ptp(both, axis=0))) + self.grid.h
             moving.append(ms)
@@ -981,38 +958,40 @@ class EolBody(VertexImpulses, Body):
         the last ``advance`` (world axes), by key."""
         return {ms.key: ms.impulse.numpy() + ms.friction_impulse for ms in self._moving}
 
-    def surface_compliance(self) -> np.ndarray:
-        """(V,) how fast each surface vertex gives way under a push [1/kg]: its velocity change per
-        unit impulse handed to it by ``add_vertex_impulses`` (``kernels.eol_loads.vertex_compliance``,
-        the lumped masses of the current state, before the elastic forces spread the push). A
-        vertex next to nodes that hold slivers of material gives way far more than one inside
-        whole cells; the bodies that push this one use it to share the push (``set_moving_surfaces``)."""
-        self._require_bound()
-        out = wp.empty(self._n_surface, dtype=wp.float64, device=self._device)
-        self._launch(kl.vertex_compliance, self._n_surface, [self.state.y_vertices, self._g3(self._mass), self._grid, out])
-        return out.numpy()
-
     def advance(self, t0: float, t1: float) -> None:
         """Adaptive steps (Eq. 33) from the body's time to t1, each capped by the frame end, the
         elastic limit and ``dt_max``."""
-        self._require_bound()
+        EolBody.advance_group([self], [0], t0, t1)
+
+    @staticmethod
+    def advance_group(bodies: Sequence[EolBody], keys: Sequence[int], t0: float, t1: float) -> None:
+        """Step EoL bodies that may touch each other from their common time to t1 with one dt per
+        step (the smallest any of them asks for, Eq. 33) and one contact QP across them (Eq. 29:
+        each body's rows against colliders and other methods' surfaces, and the rows between the
+        bodies, ``wsim.eol.pairs``). ``keys``: the bodies' stable keys in the World (the rows
+        between bodies keep their warm start under them). A body failing stops the group."""
+        for b in bodies:
+            b._require_bound()
+            b._begin_advance(t1)
+        eps = 1e-9 * max(t1 - t0, 1e-12)
+        while all(b._failure is None for b in bodies) and bodies[0].time < t1 - eps:
+            cap = min(min(t1 - b.time, b.dt_elastic, b.dt_max or math.inf) for b in bodies)
+            _step_together(bodies, keys, cap)
+        if all(b._failure is None for b in bodies):
+            for b in bodies:
+                b.state.time = t1
+
+    def _begin_advance(self, t1: float) -> None:
+        """Before the steps to t1: the first step's overlap check, and where the moving surfaces go."""
         if self.state.steps == 0 and self._colliders and not getattr(self, "_overlap_checked", False):
             self._check_initial_overlap()
             self._overlap_checked = True
-        eps = 1e-9 * max(t1 - t0, 1e-12)
         self._span = (self.time, t1)  # where the moving surfaces are: linear over this advance
-        self._load_exchange()
         for ms in self._moving:
             if ms.mu > 0.0:  # friction's reference motion
                 ms.G, ms.g = rigid_fit(ms.p0_host, ms.p1_host, t1 - self.time)
             self._launch(kc.surface_velocity, ms.p0.shape[0],
                       [ms.p0, ms.p1, wp.float64(1.0 / max(t1 - self.time, 1e-300)), ms.velocity])
-        while self._failure is None and self.time < t1 - eps:
-            cap = min(t1 - self.time, self.dt_elastic, self.dt_max or math.inf)
-            self._step(cap)
-        if self._failure is None:
-            self._save_exchange(t1 - self._span[0])
-            self.state.time = t1
 
     def check_finite(self, frame: int, time_: float) -> None:
         if self._failure is None:
@@ -1065,16 +1044,18 @@ class EolBody(VertexImpulses, Body):
             self._launch(ks.floor_mass, self.grid.n_nodes,
                       [self._mass, wp.float64(self._mass_floor)])
 
-    def _step(self, cap: float) -> None:
+    # The step's phases (``_step_together`` runs them for one body or for touching bodies at once):
+    # forces, own rows, contact (applied per QP attempt), split and dt (per attempt), finish.
+    def _step_forces(self, cap: float, dt_guess: float) -> _StepWork:
+        """1. forces: w_hat = w + dt a (Eq. 16) from the state's forces (the force pass of this state
+        was done at the end of the last step), loads and damping."""
         d = self._device
         st = self.state
         n = self.grid.n_nodes
-        t = time.perf_counter()
-        # 1. forces (the force pass of this state was done at the end of the last step)
+        work = _StepWork(t=time.perf_counter())
         L, c = self._lagrangian_field()
         self._body_acc = self._body_acceleration(st.time) if self._accelerations else np.zeros(3)
         g_axes = self._axes().T @ (self._gravity + self._body_acc)
-        dt_guess = min(cap, 2.0 * st.dt_prev)  # the QP's guess of dt, and the Coriolis factor's
         gyro = ks.coriolis_matrix(L, dt_guess, self.coriolis == "midpoint")
         self._launch(ks.node_velocities, n,
                   [self.state.v, self._mass, self._forces, self._grid, _mat(L), wp.vec3d(*c),
@@ -1087,109 +1068,119 @@ class EolBody(VertexImpulses, Body):
                            self._g3(self._mass), cap, self._g3(self._tmp), self._bound, d, self._launch)
             self._launch(ks.add_acceleration, n,
                       [self._tmp, self._mass, self._a])
-        t = self._tick("forces", t)
-        # 2-3. collision, assembly (S = J M^-1 J^T and the rows' rates on the device), QP
-        m = n_active = 0
-        system = sol = None
+        work.t = self._tick("forces", work.t)
+        return work
+
+    def _step_own_rows(self, work: _StepWork) -> None:
+        """2-3. collision and assembly of this body's rows against the colliders and other methods'
+        surfaces (S = J M^-1 J^T and the rows' rates on the device; ``work.system``, by row id)."""
         if self._colliders or self._moving:
             self._collide()
-            t = self._tick("collision", t)
-            m = self._compact()
-            if m:
-                system, order = self._read_system(m)
-            t = self._tick("assembly", t)
-        if m:  # the unconstrained w, a, kept for a re-solve at a shorter dt
-            self._launch.copy(self._w_hat, self._w)
-            self._launch.copy(self._a_hat, self._a)
-            # warm start from the rows active last step (a resting body: one or two iterations)
-            guess = np.isin(system.ids, st.active_rows)
-            guess = guess if guess.any() else None
-        # The QP is solved at dt_guess and split on its final active set as lambda_0 + dt lambda_1
-        # (Eq. 31). Extrapolated to a dt far from dt_guess that split is no QP solution: multipliers
-        # turn negative (the collider pulls the body in) and rows inactive at dt_guess are violated,
-        # which on landing flat faces pumped Eulerian velocity until dt collapsed (issue 16). So in
-        # contact dt never exceeds dt_guess, and when Eq. (33) asks for less the QP is solved again there.
-        for attempt in range(4):
-            if m:
-                if attempt:  # back to the unconstrained w, a
-                    self._launch.copy(self._w, self._w_hat)
-                    self._launch.copy(self._a, self._a_hat)
-                sol = solve_contact(system, dt_guess, active=guess)
-                st.active_rows = system.ids[sol.active]
-                lam = np.empty((m, 2))
-                lam[order] = np.column_stack([sol.lam0, sol.lam1])  # back to the device's row order
-                self._lam = wp.array(lam, dtype=wp.float64, device=d)  # friction and the reaction read it too
-                # w, a become w_0, w_1 in place (both are recomputed from the state every step)
-                self._launch(kc.apply_impulses, m,
-                             [self._surface, self._row_packed, self._row_ids, self._mass, self._lam, -1, 1,
-                              wp.float64(0.0), self._w, self._a])
-                if self._moving:
-                    self._friction(m, dt_guess)
-                n_active = int(sol.active.sum())
-                t = self._tick("qp", t)
-            # 4. least-squares split of both parts (Eqs. 23-25, 32) and the step size (Eq. 33)
-            w0, w1 = self._w, self._a
-            self._split(w0, w1)  # the fields stay on the device; read back with vmax below
-            if attempt == 0:
-                self._vmax.zero_()
-                # material within one cell of the grid's boundary (tracked at the end of the last
-                # step): the grid grows on that side (``_grow_grid``) and the step starts again on
-                # it, unless the grid has reached its limit (the body flies apart). Read back with
-                # the velocity maxima; a QP re-solve does not change it.
-                for slot, y in ((6, self.state.y_vertices), (7, self.state.y_points)):
-                    self._launch(kl.outside_margin, y.shape[0],
-                              [y, self._grid, wp.float64(1.0), self._vmax, slot])
-            else:
-                self._vmax[:6].zero_()
-            self._launch(ks.eulerian_residual, self._chunks,
-                         [w0, w1, self._mass, self._grid, self._fields, _mat(np.linalg.inv(self._F_L())), self._chunks,
-                          self._v0, self._v1, self._vmax])
-            readout = self._readout.numpy()  # the step's one synchronization without contact
-            vmax = readout[:8]
-            (L0, c0), (L1, c1), weight = unpack_fields(readout[8:READ_LOAD])
-            if self._loads_applied:
-                self._load_force = self._axes() @ readout[READ_LOAD:READ_LOAD + 3]
-                self._loads_applied = False
-            if self.lagrangian != "eulerian" and self.split == "mass":
-                self._m_total = weight  # the mass norm's total weight is the body's mass
-            if vmax[6] > 0.0 or vmax[7] > 0.0:
-                if np.all(np.isfinite(vmax[6:])) and self._grow_grid():
-                    return  # nothing advanced: the caller steps again on the larger grid
-                what = "surface vertices" if vmax[6] > 0.0 else "material points"
-                self._failure = ("material outside the grid",
-                                 (f"material left the grid: {what} came within a cell of the grid boundary "
-                                  f"({max(vmax[6], vmax[7]):.3g} cells past that margin) at step {st.steps} "
-                                  f"(t = {st.time:.6g} s) after the grid had grown to 3x its first size on that "
-                                  f"axis ({self.grid.cells} cells): the body flies apart"), "diverging")
-                return
-            vmax = vmax[:6]
-            if not np.all(np.isfinite(vmax)) or not np.all(np.isfinite(L0 + L1)):
-                self._failure = ("Eulerian velocity", f"non-finite at step {st.steps} (t = {st.time:.6g} s)", "non-finite")
-                return
-            h = self.grid.h
-            dt = adaptive_dt(vmax[:3], vmax[3:], h, self.cfl, cap)
-            if dt < 1e-9 * cap and dt < 1e-12:
-                self._failure = ("time step", f"dt = {dt:.3g} s collapsed at step {st.steps}", "diverging")
-                return
-            if sol is None:
-                break
-            if dt >= dt_guess * (1.0 - 1e-9) or attempt == 3:
-                dt = min(dt, dt_guess)
-                break
-            dt_guess, guess = dt, sol.active
-        self._launch(ks.combine, n, [self._v0, self._v1, wp.float64(dt), self._vstar])
+            work.t = self._tick("collision", work.t)
+            work.m = self._compact()
+            if work.m:
+                work.system, work.order = self._read_system(work.m)
+            work.t = self._tick("assembly", work.t)
+
+    def _keep_unconstrained(self) -> None:
+        """The unconstrained w, a, kept for a re-solve at a shorter dt."""
+        self._launch.copy(self._w_hat, self._w)
+        self._launch.copy(self._a_hat, self._a)
+
+    def _step_contact(self, work: _StepWork, attempt: int, dt_guess: float) -> None:
+        """The QP's multipliers on w, a (which become w_0, w_1 of Eq. 31 in place): this body's
+        own rows (``work.sol``) and the velocity changes of the rows between bodies
+        (``work.changes``), then friction against other methods' surfaces."""
+        if not (work.m or work.changes is not None):
+            return
+        if attempt:  # back to the unconstrained w, a
+            self._launch.copy(self._w, self._w_hat)
+            self._launch.copy(self._a, self._a_hat)
+        if work.m:
+            lam = np.empty((work.m, 2))
+            lam[work.order] = np.column_stack([work.sol.lam0, work.sol.lam1])  # back to the device's row order
+            self._lam = wp.array(lam, dtype=wp.float64, device=self._device)  # friction and the reaction read it too
+            self._launch(kc.apply_impulses, work.m,
+                         [self._surface, self._row_packed, self._row_ids, self._mass, self._lam, -1, 1,
+                          wp.float64(0.0), self._w, self._a])
+        if work.changes is not None:
+            nodes, d0, d1 = work.changes
+            d = self._device
+            self._launch(kc.add_node_changes, len(nodes),
+                         [wp.array(nodes.astype(np.int32), dtype=wp.int32, device=d), wp.array(d0, dtype=wp.vec3d, device=d),
+                          wp.array(d1, dtype=wp.vec3d, device=d), self._w, self._a])
+        if work.m and self._moving:
+            self._friction(work.m, dt_guess)
+        work.t = self._tick("qp", work.t)
+
+    def _step_split(self, work: _StepWork, attempt: int, cap: float) -> float | None:
+        """4. the least-squares split of w_0 and w_1 (Eqs. 23-25, 32) and the step size this body
+        allows (Eq. 33); None when the step cannot go on (the grid grew: step again; or failed)."""
+        st = self.state
+        w0, w1 = self._w, self._a
+        self._split(w0, w1)  # the fields stay on the device; read back with vmax below
+        if attempt == 0:
+            self._vmax.zero_()
+            # material within one cell of the grid's boundary (tracked at the end of the last
+            # step): the grid grows on that side (``_grow_grid``) and the step starts again on
+            # it, unless the grid has reached its limit (the body flies apart). Read back with
+            # the velocity maxima; a QP re-solve does not change it.
+            for slot, y in ((6, self.state.y_vertices), (7, self.state.y_points)):
+                self._launch(kl.outside_margin, y.shape[0],
+                          [y, self._grid, wp.float64(1.0), self._vmax, slot])
+        else:
+            self._vmax[:6].zero_()
+        self._launch(ks.eulerian_residual, self._chunks,
+                     [w0, w1, self._mass, self._grid, self._fields, _mat(np.linalg.inv(self._F_L())), self._chunks,
+                      self._v0, self._v1, self._vmax])
+        readout = self._readout.numpy()  # the step's one synchronization without contact
+        vmax = readout[:8]
+        work.fields = unpack_fields(readout[8:READ_LOAD])
+        weight = work.fields[2]
+        if self._loads_applied:
+            self._load_force = self._axes() @ readout[READ_LOAD:READ_LOAD + 3]
+            self._loads_applied = False
+        if self.lagrangian != "eulerian" and self.split == "mass":
+            self._m_total = weight  # the mass norm's total weight is the body's mass
+        if vmax[6] > 0.0 or vmax[7] > 0.0:
+            if np.all(np.isfinite(vmax[6:])) and self._grow_grid():
+                return None  # nothing advanced: the caller steps again on the larger grid
+            what = "surface vertices" if vmax[6] > 0.0 else "material points"
+            self._failure = ("material outside the grid",
+                             (f"material left the grid: {what} came within a cell of the grid boundary "
+                              f"({max(vmax[6], vmax[7]):.3g} cells past that margin) at step {st.steps} "
+                              f"(t = {st.time:.6g} s) after the grid had grown to 3x its first size on that "
+                              f"axis ({self.grid.cells} cells): the body flies apart"), "diverging")
+            return None
+        vmax = work.vmax = vmax[:6].copy()
+        (L0, c0), (L1, c1), _ = work.fields
+        if not np.all(np.isfinite(vmax)) or not np.all(np.isfinite(L0 + L1)):
+            self._failure = ("Eulerian velocity", f"non-finite at step {st.steps} (t = {st.time:.6g} s)", "non-finite")
+            return None
+        dt = adaptive_dt(vmax[:3], vmax[3:], self.grid.h, self.cfl, cap)
+        if dt < 1e-9 * cap and dt < 1e-12:
+            self._failure = ("time step", f"dt = {dt:.3g} s collapsed at step {st.steps}", "diverging")
+            return None
+        work.t = self._tick("ls", work.t)
+        return dt
+
+    def _step_finish(self, work: _StepWork, dt: float) -> None:
+        """5-6. advect v* by itself, then z by v^{t+1} (Algorithm 1), move the frame; Algorithm 2 for
+        the material points and the surface, plasticity, the new state's forces."""
+        st = self.state
+        t = work.t
+        (L0, c0), (L1, c1), _ = work.fields
+        self._launch(ks.combine, self.grid.n_nodes, [self._v0, self._v1, wp.float64(dt), self._vstar])
         L_new, c_new = L0 + dt * L1, c0 + dt * c1
-        if sol is not None:  # momentum the QP delivered: sum_s m_s (w_s - w_hat_s) = -J^T lambda
-            st.contact_impulse = st.contact_impulse - self._axes() @ ((sol.lam0 + dt * sol.lam1) @ system.jsum)
+        if work.sol is not None:  # momentum the QP delivered: sum_s m_s (w_s - w_hat_s) = -J^T lambda
+            st.contact_impulse = st.contact_impulse - self._axes() @ ((work.sol.lam0 + dt * work.sol.lam1) @ work.system.jsum)
             if self._moving:
-                st.contact_impulse = st.contact_impulse + self._react(m, dt)
-                self._push_taken(system, sol.lam0 + dt * sol.lam1)
-        t = self._tick("ls", t)
-        # 5. advect v* by itself, then z by v^{t+1} (Algorithm 1), and move the frame
+                st.contact_impulse = st.contact_impulse + self._react(work.m, dt)
+        if work.changes is not None:  # and the rows between bodies
+            st.contact_impulse = st.contact_impulse + work.pair_impulse[0] + dt * work.pair_impulse[1]
         self._advect_fields(dt)
         self._integrate_pose(dt, L_new, c_new)
         t = self._tick("advect", t)
-        # 6. Algorithm 2 for the material points and the surface, the new state's forces
         self._track()
         t = self._tick("track", t)
         if self.plasticity is not None:
@@ -1206,10 +1197,13 @@ class EolBody(VertexImpulses, Body):
         st.gravity_impulse = st.gravity_impulse + dt * self._m_total * self._gravity
         if self._accelerations or self._tractions or self._point_forces or self._coupling_load:
             st.load_impulse = st.load_impulse + dt * (self._m_total * self._body_acc + self._load_force)
-        self.history.append(StepRecord(time=st.time, dt=dt, rows=m, active=n_active,
+        vmax = work.vmax
+        self.history.append(StepRecord(time=st.time, dt=dt, rows=work.m + work.pair_rows,
+                                       active=work.active + work.pair_active,
                                        v_star=float(max(vmax[:3].max(), 0.0) + dt * vmax[3:].max()),
-                                       overlap=0.0 if system is None else float(system.overlap.sum()),
-                                       qp_iterations=0 if sol is None else sol.iterations))
+                                       overlap=(0.0 if work.system is None else float(work.system.overlap.sum()))
+                                       + work.pair_overlap,
+                                       qp_iterations=0 if work.sol is None else work.sol.iterations))
         st.time += dt
         st.steps += 1
         st.dt_prev = dt
@@ -1292,7 +1286,7 @@ class EolBody(VertexImpulses, Body):
         """Collision: the surface samples inside each collider, binned into rows on the device."""
         d = self._device
         surf = self._surface
-        surf.F, surf.T, surf.to_axes = _mat(self.state.F), wp.vec3d(*self.state.T), _mat(self._axes().T)
+        self._place_surface()
         for ci, col in enumerate(self._colliders):
             plane = self._surfaces.plane(ci)
             if plane is not None:
@@ -1315,6 +1309,57 @@ class EolBody(VertexImpulses, Body):
             self._launch(kc.surface_rows, surf.sample_face.shape[0],
                       [surf, ms.mesh.id, ms.velocity, float(ms.reach), len(self._colliders) + k,
                               self._row_acc, self._row_flag, *ms.hits])
+
+    def _place_surface(self) -> None:
+        """The contact samples' Lagrangian map and axes at the current state."""
+        surf = self._surface
+        surf.F, surf.T, surf.to_axes = _mat(self.state.F), wp.vec3d(*self.state.T), _mat(self._axes().T)
+
+    def _ensure_surface(self) -> None:
+        """Contact samples for a body that touches other EoL bodies but no collider or surface."""
+        if self._surface is None:
+            self._contact_slots(1)
+
+    def _place_world_mesh(self) -> None:
+        """This body's tracked surface in the world where it is now, as a Warp mesh (made once,
+        refit each step) that other EoL bodies' samples are tested against (``_pair_samples``)."""
+        n = self.state.y_vertices.shape[0]
+        if getattr(self, "_world_mesh", None) is None or self._world_points.shape[0] != n:
+            self._world_points = wp.zeros(n, dtype=wp.vec3, device=self._device)
+            self._launch(kc.world_surface, n, [self._surface, self._world_points])
+            self._world_mesh = wp.Mesh(points=self._world_points, support_winding_number=True,
+                                       indices=wp.array(self._tracked_faces.ravel(), dtype=wp.int32, device=self._device))
+        else:
+            self._launch(kc.world_surface, n, [self._surface, self._world_points])
+            self._world_mesh.refit()
+
+    def _pair_samples(self, others: list[tuple[EolBody, int, int, float]]) -> tuple[np.ndarray, np.ndarray]:
+        """Records of this body's samples inside other EoL bodies (``kernels.eol_contact.pair_samples``):
+        (other body, whether this body is the pair's A, pair index, query reach [m]) each; the
+        buffer grows when a step has more records than it holds. Returns (rec_i, rec_f) on the host."""
+        d = self._device
+        P = self._surface.sample_face.shape[0]
+        if getattr(self, "_pair_count", None) is None:
+            self._pair_count = wp.zeros(1, dtype=wp.int32, device=d)
+            self._pair_capacity = 0
+        while True:
+            if self._pair_capacity < max(64, P // 8):
+                self._pair_capacity = max(64, P // 8)
+            if getattr(self, "_pair_rec_i", None) is None or self._pair_rec_i.shape[0] < self._pair_capacity:
+                self._pair_rec_i = wp.zeros((self._pair_capacity, 5), dtype=wp.int32, device=d)
+                self._pair_rec_f = wp.zeros((self._pair_capacity, kc.PAIR_RECORD), dtype=wp.float64, device=d)
+            self._pair_count.zero_()
+            for other, own_is_a, pair, reach in others:
+                F = other.state.F
+                inverse = F.T if other.lagrangian == "rigid" else np.linalg.inv(F)
+                self._launch(kc.pair_samples, P,
+                             [self._surface, other._surface, _mat(inverse), other._world_mesh.id, float(reach),
+                              int(own_is_a), int(pair), self._w, self._a, other._w, other._a, self._pair_count,
+                              self._pair_rec_i, self._pair_rec_f])
+            n = int(self._pair_count.numpy()[0])
+            if n <= self._pair_rec_i.shape[0]:
+                return self._pair_rec_i[:n].numpy(), self._pair_rec_f[:n].numpy()
+            self._pair_capacity = 2 * n
 
     def _friction(self, m: int, dt: float) -> None:
         """Coulomb friction against each moving surface at the nodes its rows pushed (the m rows'
@@ -1377,8 +1422,7 @@ class EolBody(VertexImpulses, Body):
         """The dual QP of the m compacted rows, assembled on the device (one m^2 + 8 m copy to the
         host), sorted by row id; and that order (sorted row i is the device's row order[i])."""
         d = self._device
-        giving = [(k, ms) for k, ms in enumerate(self._moving) if ms.compliance is not None]
-        size = m * m + (9 if giving else 8) * m
+        size = m * m + 8 * m
         if self._system.shape[0] < size:
             self._system = wp.empty(2 * size, dtype=wp.float64, device=d)
         self._system[: m * m].zero_()
@@ -1387,11 +1431,6 @@ class EolBody(VertexImpulses, Body):
         self._launch(kc.schur_complement, (m, 27 * self._row_groups),
                   [self._surface, self._row_packed, self._row_ids, self._row_of_slot, self._mass, m,
                           self._system])
-        if giving:  # the partners' give per row, read back with the rest
-            self._system[m * m + 8 * m:size].zero_()
-            for _, ms in giving:
-                self._launch(kc.row_compliance, self._surface.sample_face.shape[0],
-                             [ms.mesh.id, *ms.hits, self._row_of_slot, ms.compliance, self._system, m * m + 8 * m])
         host = self._system[:size].numpy()
         ids = host[m * m + 7 * m:m * m + 8 * m].astype(np.int64)
         order = np.argsort(ids, kind="stable")
@@ -1399,91 +1438,7 @@ class EolBody(VertexImpulses, Body):
         system = ContactSystem(S=host[: m * m].reshape(m, m)[np.ix_(order, order)], Jw=vec[0], Ja=vec[1], b=vec[2],
                                ids=ids[order], collider=ids[order] // int(np.prod(self._ccells)), overlap=vec[3],
                                jsum=vec[4:].T.copy())
-        if giving:
-            system = self._exchange_terms(system, host[m * m + 8 * m:size][order])
         return system, order
-
-    def _exchange_terms(self, system: ContactSystem, give: np.ndarray) -> ContactSystem:
-        """The rows against partners that give way (``set_moving_surfaces``' compliance), made to
-        share the push with them instead of treating them as rigid over the coupling interval.
-
-        Row i's push lambda_i moves the partner by lambda_i jsum_i near its samples, and the
-        partner's surface there gives way, which grows the row's right side (the partner's flux,
-        Eq. 28): the dual matrix becomes S + C with C_ij = jsum_i . jsum_j c_ij, c_ij the partner's
-        give at row i's samples under row j's push. C is bounded above by the diagonal
-        W_i = c_i |jsum_i| sum_j |jsum_j| over the rows j of the same partner whose blocks touch
-        i's (S_ij != 0; further rows push other parts of the partner), c_i the partner's largest
-        compliance under row i's samples (``kernels.eol_contact.row_compliance``): the Gershgorin
-        bound of the rank-one push of all those rows on one point of compliance c_i.
-
-        The partner takes the push one interval late, so its surface velocity this interval
-        already holds what it was handed (the rate r_i of this row's push over the last interval,
-        delivered uniformly): only the difference between what the row has pushed so far this
-        interval (a_i, and lambda_i at this step) and what has been delivered by the step's end
-        (r_i (tau + dt), tau the time since the interval began) gives way. So J w gets
-        W_i (r_i tau - a_i) and J a gets W_i r_i:
-
-            (S + diag W) lambda >= J w_hat - b + W (r (tau + dt) - a)
-
-        At a steady push (a = r tau, lambda = r dt) this is the rigid partner's QP exactly, so a
-        body resting on another does not sink. Against a rigid partner (W = 0) the lag makes the
-        exchange ring once the partner's surface nodes are lighter than this body's rows: per
-        interval the push changes by -C / S times the last change, a loop gain above one. With
-        W it is (C - W) / (S + W), below one in size whenever W >= C / 2 - S / 2, which the
-        upper bound W keeps. On a dense cube landing on a light slab the landing's v* fell from
-        44 to 6 m/s and the pair stopped gaining energy (the test
-        ``test_eol_cube_landing_on_a_light_slab_does_not_ring``); the diagonal alone (no
-        neighbours) still left 16 m/s and a 1.2 J gain, and the bound over all rows of the
-        partner (much softer rows) let the cube sink 1.6 cm into the slab, and the relaxation of
-        that overlap threw it back higher than it fell."""
-        per = int(np.prod(self._ccells))
-        slot = system.collider - len(self._colliders)
-        g = np.linalg.norm(system.jsum, axis=1)
-        near = (system.S != 0.0) & (slot[:, None] == slot[None, :])  # rows of blocks that share nodes
-        W = give * g * (near @ g)
-        if not np.any(W > 0.0):
-            return system
-        cell = system.ids % per
-        tau = self.state.time - self._span[0]
-        r = np.zeros(system.m)
-        a = np.zeros(system.m)
-        for k, ms in enumerate(self._moving):
-            if ms.compliance is not None:
-                on = slot == k
-                r[on], a[on] = ms.rate[cell[on]], ms.acc[cell[on]]
-        S = system.S.copy()
-        S[np.diag_indices(system.m)] += W
-        return replace(system, S=S, Jw=system.Jw + W * (r * tau - a), Ja=system.Ja + W * r)
-
-    def _load_exchange(self) -> None:
-        """Each partner's push rate per collision cell over the last ``advance`` (``EolState.exchange``),
-        and nothing pushed yet in this one."""
-        per = int(np.prod(self._ccells)) if self._surface is not None else 0
-        ex = self.state.exchange
-        for ms in self._moving:
-            ms.rate, ms.acc = np.zeros(per), np.zeros(per)
-            if ms.compliance is not None and len(ex):
-                mine = ex[:, 0] == ms.key
-                ms.rate[ex[mine, 1].astype(np.int64)] = ex[mine, 2]
-
-    def _save_exchange(self, span: float) -> None:
-        """What the rows pushed each yielding partner with over the ``advance`` just ended, as a rate
-        per collision cell (the next advance's ``_exchange_terms``)."""
-        rows = []
-        for ms in self._moving:
-            if ms.compliance is not None and ms.acc is not None and span > 0.0:
-                cell = np.flatnonzero(ms.acc)
-                rows.append(np.column_stack([np.full(len(cell), float(ms.key)), cell, ms.acc[cell] / span]))
-        self.state.exchange = np.concatenate(rows) if rows else np.zeros((0, 3))
-
-    def _push_taken(self, system: ContactSystem, lam: np.ndarray) -> None:
-        """Add this step's multipliers to what each yielding partner has been pushed with."""
-        per = int(np.prod(self._ccells))
-        slot = system.collider - len(self._colliders)
-        for k, ms in enumerate(self._moving):
-            if ms.compliance is not None:
-                on = slot == k
-                np.add.at(ms.acc, system.ids[on] % per, lam[on])
 
     def contact_rows(self) -> ContactRows | None:
         """The contact constraints of Eq. (28) at the current state, read back with J (None: no
@@ -1498,6 +1453,217 @@ class EolBody(VertexImpulses, Body):
         ids = self._row_ids[:m].numpy().astype(np.int64)
         nodes = block_nodes(self.grid.node_shape, self.collision_block, self._ccells, ids)
         return rows_from_blocks(ids, self._row_packed[:m].numpy(), nodes, int(np.prod(self._ccells)))
+
+
+@dataclass(eq=False)
+class _StepWork:
+    """One step of a body in progress (``_step_together``): what its phases hand each other.
+    ``changes``: (nodes, dw, da) the rows between bodies change w and a by; ``pair_impulse``: the
+    momentum they deliver (world), the part independent of dt (with their friction) and the
+    part per unit dt (Eq. 31)."""
+
+    t: float
+    m: int = 0
+    system: ContactSystem | None = None
+    order: np.ndarray | None = None
+    sol: ContactSolution | None = None
+    active: int = 0
+    own_at: Any = None  # its own rows at the nodes the rows between bodies touch (``pairs.own_rows_at``)
+    changes: tuple | None = None
+    pair_impulse: tuple = (np.zeros(3), np.zeros(3))
+    pair_rows: int = 0
+    pair_active: int = 0
+    pair_overlap: float = 0.0
+    fields: tuple | None = None
+    vmax: np.ndarray | None = None
+
+
+def _step_together(bodies: Sequence[EolBody], keys: Sequence[int], cap: float) -> None:
+    """One step of EoL bodies with one dt (a single body: its own step).
+
+    Each body computes its unconstrained velocities and its own contact rows; the rows between
+    bodies come from the samples of each inside another (``_rows_between``). Bodies joined by such
+    rows solve one QP (``_solve``), the others their own. The QP is solved at dt_guess and split
+    on its final active set as lambda_0 + dt lambda_1 (Eq. 31). Extrapolated to a dt far from
+    dt_guess that split is no QP solution: multipliers turn negative (the collider pulls the body
+    in) and rows inactive at dt_guess are violated, which on landing flat faces pumped Eulerian
+    velocity until dt collapsed (issue 16). So in contact dt never exceeds dt_guess, and when Eq.
+    (33) asks for less (the smallest any body asks for) the QP is solved again there."""
+    dt_guess = min(cap, 2.0 * min(b.state.dt_prev for b in bodies))  # the QP's guess, and the Coriolis factor's
+    works = [b._step_forces(cap, dt_guess) for b in bodies]
+    for b, w in zip(bodies, works):
+        b._step_own_rows(w)
+    rows = _rows_between(bodies, keys, works) if len(bodies) > 1 else None
+    problems = _problems(works, rows)
+    for k in sorted({k for ks_, _ in problems for k in ks_}):
+        bodies[k]._keep_unconstrained()
+    cache: dict[int, Any] = {}
+    guesses: dict[int, np.ndarray | None] = {}
+    dts: list[float | None] = [None] * len(bodies)
+    dt = cap
+    for attempt in range(4):
+        for p, problem in enumerate(problems):
+            guesses[p] = _solve(bodies, works, rows, problem, dt_guess, guesses.get(p), cache, p)
+        for k, (b, w) in enumerate(zip(bodies, works)):
+            if attempt and not (w.m or w.changes is not None):
+                continue  # no contact: its split and dt do not depend on the QP's dt
+            b._step_contact(w, attempt, dt_guess)
+            dts[k] = b._step_split(w, attempt, cap)
+            if dts[k] is None:
+                return  # the grid grew (step again) or the body failed
+        dt = min(dts)
+        if not problems:
+            break
+        if dt >= dt_guess * (1.0 - 1e-9) or attempt == 3:
+            dt = min(dt, dt_guess)
+            break
+        dt_guess = dt
+    for b, w in zip(bodies, works):
+        b._step_finish(w, dt)
+
+
+def _rows_between(bodies: Sequence[EolBody], keys: Sequence[int], works: list[_StepWork]) -> pairs.PairRows | None:
+    """The contact rows between bodies whose grid boxes overlap: every sample of each inside the
+    other's tracked surface, on the device (``kernels.eol_contact.pair_samples``); only those
+    samples' records reach the host, which assembles the rows (``wsim.eol.pairs.assemble``)."""
+    from wsim.contact import pair_friction
+
+    boxes = []
+    for b in bodies:
+        b._ensure_surface()
+        b._place_surface()
+        g = b.grid
+        corners = g.origin + g.h * np.array([[i, j, k] for i in (0, g.cells[0]) for j in (0, g.cells[1])
+                                             for k in (0, g.cells[2])])
+        x = corners @ b.state.F.T + b.state.T
+        boxes.append((x.min(axis=0), x.max(axis=0)))
+    found = [(i, j, pair_friction(bodies[i].friction, bodies[j].friction))
+             for i in range(len(bodies)) for j in range(i + 1, len(bodies))
+             if np.all(boxes[i][1] >= boxes[j][0]) and np.all(boxes[j][1] >= boxes[i][0])]
+    if not found:
+        return None
+    for k in sorted({k for i, j, _ in found for k in (i, j)}):
+        bodies[k]._place_world_mesh()
+    launches: dict[int, list[tuple]] = {}
+    for p, (i, j, _) in enumerate(found):
+        launches.setdefault(i, []).append((j, 1, p))
+        launches.setdefault(j, []).append((i, 0, p))
+    records = []
+    for k, todo in launches.items():
+        ri, rf = bodies[k]._pair_samples([(bodies[o], a, p, float(np.linalg.norm(boxes[o][1] - boxes[o][0])))
+                                          for o, a, p in todo])
+        if len(ri):
+            records.append((k, ri, rf))
+    infos = [pairs.BodyInfo(node_shape=b.grid.node_shape, Q=b._axes(), inv_tau=1.0 / b._positive["contact_relaxation"],
+                            key=int(key)) for b, key in zip(bodies, keys)]
+    rows = pairs.assemble(records, found, infos)
+    if rows is None:
+        return None
+    for k, side in rows.sides.items():  # each body's own rows at the nodes the rows between bodies touch
+        w, b = works[k], bodies[k]
+        if w.m:
+            packed = b._row_packed[: w.m].numpy()[w.order]
+            nodes = block_nodes(b.grid.node_shape, b.collision_block, b._ccells, w.system.ids)
+            w.own_at = pairs.own_rows_at(side, packed, nodes)
+    return rows
+
+
+def _problems(works: list[_StepWork], rows: pairs.PairRows | None) -> list[tuple[list[int], np.ndarray]]:
+    """The QPs of a step: bodies joined by rows between them (with those rows' indices) solve one
+    together; a body with only its own rows solves its own; a body without rows none."""
+    parent = list(range(len(works)))
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    if rows is not None:
+        for a, b in rows.bodies:
+            parent[find(int(a))] = find(int(b))
+    groups: dict[int, list[int]] = {}
+    for k, w in enumerate(works):
+        if w.m or (rows is not None and k in rows.sides):
+            groups.setdefault(find(k), []).append(k)
+    out = []
+    for members in groups.values():
+        idx = np.zeros(0, dtype=np.int64)
+        if rows is not None:
+            idx = np.flatnonzero(np.isin(rows.bodies[:, 0], members))
+        out.append((members, idx))
+    return out
+
+
+def _solve(bodies: Sequence[EolBody], works: list[_StepWork], rows: pairs.PairRows | None,
+           problem: tuple[list[int], np.ndarray], dt_guess: float, guess: np.ndarray | None,
+           cache: dict[int, Any], p: int) -> np.ndarray:
+    """Solve one QP of a step at dt_guess (warm-started from ``guess``, the last attempt's active
+    set, or else the bodies' rows active last step) and hand each body its part: its own rows'
+    multipliers (``work.sol``) and the velocity changes of the rows between bodies with their
+    friction (``work.changes``). Returns the active set (the next attempt's guess)."""
+    members, idx = problem
+    if not len(idx):  # one body, its own rows
+        k = members[0]
+        w, st = works[k], bodies[k].state
+        if guess is None:
+            guess = np.isin(w.system.ids, st.active_rows)
+            guess = guess if guess.any() else None
+        w.sol = solve_contact(w.system, dt_guess, active=guess)
+        st.active_rows = w.system.ids[w.sol.active]
+        w.active = int(w.sol.active.sum())
+        return w.sol.active
+    if p not in cache:  # the joint system is the same for every attempt
+        sub = rows.take(idx)
+        own = [works[k].system for k in members]
+        cache[p] = (sub, pairs.joint_system(own, [works[k].own_at for k in members], members, sub))
+    sub, system = cache[p]
+    if guess is None:
+        guess = np.concatenate([np.isin(works[k].system.ids, bodies[k].state.active_rows) for k in members
+                                if works[k].system is not None]
+                               + [np.array([sub.ids[r] in bodies[sub.owner[r]].state.active_rows.tolist()
+                                            for r in range(sub.m)], dtype=bool)])
+        guess = guess if guess.any() else None
+    sol = solve_contact(system, dt_guess, active=guess)
+    at = 0
+    own_lam: dict[int, np.ndarray] = {}
+    for k in members:
+        w = works[k]
+        if w.system is None:
+            w.sol = None
+            continue
+        sl = slice(at, at + w.m)
+        at += w.m
+        w.sol = ContactSolution(lam0=sol.lam0[sl], lam1=sol.lam1[sl], active=sol.active[sl], iterations=sol.iterations)
+        w.active = int(w.sol.active.sum())
+        own_lam[k] = w.sol.lam0 + dt_guess * w.sol.lam1
+    lam0, lam1, active = sol.lam0[at:], sol.lam1[at:], sol.active[at:]
+    # each body's velocity change at the nodes the rows between bodies touch; the slip those
+    # rows see after every normal impulse (its own rows' too), and their friction
+    dv0 = {k: pairs.node_changes(sub, k, lam0) for k in sub.sides}
+    dv1 = {k: pairs.node_changes(sub, k, lam1) for k in sub.sides}
+    total = {k: dv0[k] + dt_guess * dv1[k] + (pairs.own_changes(sub, k, works[k].own_at, own_lam[k])
+                                              if k in own_lam and works[k].own_at is not None else 0.0)
+             for k in sub.sides}
+    slip = sub.slip_w + dt_guess * sub.slip_a + pairs.slip_change(sub, total)
+    P = pairs.row_friction(sub, lam0 + dt_guess * lam1, slip)
+    for k in members:
+        st = bodies[k].state
+        own_ids = works[k].system.ids[works[k].sol.active] if works[k].sol is not None else np.zeros(0, np.int64)
+        st.active_rows = np.concatenate([own_ids, sub.ids[active & (sub.owner == k)]])
+        w = works[k]
+        side = sub.sides.get(k)
+        if side is None:
+            w.changes = None
+            continue
+        fric = pairs.friction_changes(sub, k, P)
+        w.changes = (side.nodes, dv0[k] + fric, dv1[k])
+        inv = np.where(side.inv_mass > 0.0, 1.0 / np.maximum(side.inv_mass, 1e-300), 0.0)[:, None]
+        w.pair_impulse = (side.Q @ (inv * (dv0[k] + fric)).sum(axis=0), side.Q @ (inv * dv1[k]).sum(axis=0))
+        on = (sub.bodies == k).any(axis=1)
+        w.pair_rows, w.pair_active = int(on.sum()), int((active & on).sum())
+        w.pair_overlap = float(sub.overlap[on].sum())
+    return sol.active
 
 
 def _opposite_push(force: np.ndarray, moment: np.ndarray, weight: np.ndarray, x: np.ndarray) -> np.ndarray:

@@ -32,21 +32,19 @@ class EolState:
         Adot: (3, 3) affine dA/dt [1/s].
         dt_prev: the last step's dt [s] (the next dt guess of the contact QP).
         time: the body's time [s].  steps: steps taken.
-        active_rows: ids of the contact rows active in the last QP (its warm start; variable length).
+        active_rows: ids of the contact rows active in the last QP (its warm start; variable length),
+            with those of the rows between it and other EoL bodies that it keeps (``wsim.eol.pairs``).
         contact_impulse, gravity_impulse, load_impulse: (3,) momentum delivered by contact, by gravity and
             by the loads (``add_traction``, ``add_body_force``) so far [kg m/s].
         coupling_force, coupling_until, coupling_impulse: the point forces [N] (V, 3) of
             ``add_vertex_impulses`` still being delivered, until when [s] (-1: none), and the momentum
             handed over so far [N s].
-        exchange: (n, 3) what this body pushed other bodies that give way with over its last
-            ``advance``, per contact row: (partner key, collision cell, push rate [N])
-            (``EolBody._exchange_terms``; variable length).
         grid_grown: (6,) cells the grid has grown by since ``bind``, below x, y, z and above x, y, z
             (``EolBody._regrid``; z and v are sized by the grown grid).
         failure: utf-8 bytes of "quantity\\x1fdetail\\x1freason" once a step failed (empty: none).
     """
 
-    _ragged: ClassVar[tuple[str, ...]] = ("active_rows", "failure", "coupling_force", "exchange")
+    _ragged: ClassVar[tuple[str, ...]] = ("active_rows", "failure", "coupling_force")
 
     z: wp.array
     v: wp.array
@@ -69,7 +67,6 @@ class EolState:
     coupling_force: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     coupling_until: float = -1.0
     coupling_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    exchange: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     failure: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.uint8))
 
     def get_failure(self) -> tuple[str, str, str] | None:
