@@ -615,7 +615,7 @@ vec8d = wp.types.vector(length=8, dtype=wp.float64)
 def cell_weights(surf: ContactSurface, yp: wp.vec3d):
     """The grid cell holding intermediate point yp: its first node's flat index, the 8 corners'
     row weights Phi_c m_c / sum Phi m (the mass-weighted velocity of ``accumulate_row``; zero on
-    nodes without mass), sum Phi m (zero: no corner holds material) and yp's local coordinates."""
+    nodes without mass) and sum Phi m (zero: no corner holds material)."""
     cell, t = sample_cell(surf, yp)
     ny = surf.grid.shape[1]
     nz = surf.grid.shape[2]
@@ -627,50 +627,7 @@ def cell_weights(surf: ContactSurface, yp: wp.vec3d):
     if pm > wp.float64(0.0):
         for c in range(8):
             weights[c] = corner_weight(c, t) * surf.mass[base + (c // 4) * ny * nz + ((c // 2) % 2) * nz + c % 2] / pm
-    return base, weights, pm, t
-
-
-@wp.func
-def corner_offset(c: int) -> wp.vec3d:
-    """Corner c of the unit cell, (i, j, k) with c = 4 i + 2 j + k."""
-    return wp.vec3d(wp.float64(c // 4), wp.float64((c // 2) % 2), wp.float64(c % 2))
-
-
-@wp.func
-def centred_weights(weights: vec8d, t: wp.vec3d) -> vec8d:
-    """Cell weights (``cell_weights``) changed so that their centroid is the sample, where it can
-    be with weights >= 0: phi_c = w_c (1 + s b . (c - cbar)) with cbar = sum w_c c the weights'
-    centroid, b = C^+ (t - cbar) (C = sum w_c (c - cbar)(c - cbar)^T, unit-cell coordinates, its
-    pseudo-inverse over directions the weights spread in) and s <= 1 the largest fraction that
-    keeps every phi_c >= 0. The weights still sum to one and vanish where w_c does (nodes without
-    material); their first moment moves from cbar to t. A row's impulse on the two bodies then
-    acts at the same point, so the pair's angular momentum is kept: with the mass-weighted
-    centroids (each inside its own body's material) a frictionless glancing blow of two 6-cell
-    spheres gained 4.9 % of |L|."""
-    cbar = wp.vec3d()
-    for c in range(8):
-        cbar += weights[c] * corner_offset(c)
-    C = wp.mat33d()
-    for c in range(8):
-        d = corner_offset(c) - cbar
-        C += weights[c] * wp.outer(d, d)
-    Q, e = wp.eig3(C)
-    r = t - cbar
-    b = wp.vec3d()
-    for k in range(3):
-        if e[k] > wp.float64(1.0e-6):
-            q = wp.vec3d(Q[0, k], Q[1, k], Q[2, k])
-            b += (wp.dot(q, r) / e[k]) * q
-    s = wp.float64(1.0)
-    for c in range(8):
-        if weights[c] > wp.float64(0.0):
-            g = wp.dot(b, corner_offset(c) - cbar)
-            if g < wp.float64(0.0):
-                s = wp.min(s, wp.float64(-1.0) / g)
-    out = vec8d()
-    for c in range(8):
-        out[c] = weights[c] * (wp.float64(1.0) + s * wp.dot(b, corner_offset(c) - cbar))
-    return out
+    return base, weights, pm
 
 
 @wp.func
@@ -723,9 +680,9 @@ def pair_samples(
     that its impulse -lambda c_s on the own body is +lambda c_s on the other (equal and opposite
     at the same point: the pair's momentum is exact). Each body's velocity at x_s is the
     mass-weighted mean of its cell's nodes (``cell_weights``, against flinging nodes that hold a
-    sliver of material) with the weights' centroid moved onto x_s (``centred_weights``: both
-    impulses act at x_s, so the pair's angular momentum is kept too); a sample in a cell of either
-    body that holds no material is skipped. The row is the pair's (``pair``) collision cell of body A
+    sliver of material; the impulse then acts at each cell's mass centroid, and the host makes up
+    the pair's angular momentum with a couple, ``wsim.eol.pairs.moment_couples``); a sample in a
+    cell of either body that holds no material is skipped. The row is the pair's (``pair``) collision cell of body A
     (``own_is_a``: this body, else the other) at x_s: samples of both bodies in one cell make one
     row, the paper's collision grid of Sec. 3.5.
 
@@ -745,12 +702,10 @@ def pair_samples(
     q = query_inside(mesh, p, max_dist, 1)
     if not (q.result and q.sign < 0.0):
         return
-    base_o, wo, pm_o, t_o = cell_weights(own, yp)
-    base_b, wb, pm_b, t_b = cell_weights(other, yo)
+    base_o, wo, pm_o = cell_weights(own, yp)
+    base_b, wb, pm_b = cell_weights(other, yo)
     if pm_o <= wp.float64(0.0) or pm_b <= wp.float64(0.0):
         return
-    wo = centred_weights(wo, t_o)
-    wb = centred_weights(wb, t_b)
     closest = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
     n = wp.mesh_eval_face_normal(mesh, q.face)
     cn = wp.vec3d(wp.float64(n[0]), wp.float64(n[1]), wp.float64(n[2]))

@@ -5,11 +5,9 @@
 
 Sixteen soft bodies (spheres, boxes, capsules and cylinders of about 0.2 m; E = 50 kPa,
 nu = 0.3, rho = 500 kg/m^3, light damping; friction 0.4 between them) fall in four layers of four
-into a 0.6 x 0.6 m bin (a ground plane and four static wall meshes) and settle into a pile. Every
-pair meets through the World's explicit coupling between EoL bodies (the lighter of two keeps
-itself out of the other's surface with its contact rows, Eqs. 27-29, every 1 ms interval; the
-other is handed the opposite impulse); the walls and ground are the paper's frictionless
-colliders. ``resolution`` (cells across each body) is the knob: 6 here so a CPU runs it in
+into a 0.6 x 0.6 m bin (a ground plane and four static wall meshes) and settle into a pile. Bodies
+that may touch step together with one dt and one contact QP (Eqs. 27-29 across objects, as in the
+paper); the walls and ground are the paper's frictionless colliders. ``resolution`` (cells across each body) is the knob: 6 here so a CPU runs it in
 minutes; the paper's Table II uses 32 (``build(resolution=32)``, a GPU's job).
 """
 

@@ -7,10 +7,10 @@ Two soft balls (0.5 m across; E = 50 kPa, nu = 0.3, rho = 500 kg/m^3, light Kelv
 fly at each other at 2 m/s each in zero gravity, 5 cm off centre, squash flat against each other
 and part spinning. Each body's rigid Lagrangian frame carries its flight; its Eulerian grid
 (``resolution`` cells across: 12 here so a CPU runs it in about a minute; the paper's Table II
-uses 32, ``build(resolution=32)``) carries the squash. The bodies meet through the World's
-explicit coupling between EoL bodies: the lighter one (here the second, by a hair) keeps itself
-out of the other's surface with its contact rows (Eqs. 27-29) every coupling interval (1 ms) and
-the other is handed the opposite impulse; Coulomb friction 0.3 between them.
+uses 32, ``build(resolution=32)``) carries the squash. Once they may touch, the two step
+together with one dt and one contact QP (Eqs. 27-29 across objects: every sample of either
+surface inside the other makes a row on both bodies' velocities); Coulomb friction 0.3 between
+them.
 """
 
 from __future__ import annotations

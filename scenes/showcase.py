@@ -13,10 +13,11 @@ them, a PDE reconstruction (Fang et al. 2021) replays a third PBD fish dropped o
 14 keyframes (every 8th frame) and the closed-form curves between them; it is playback of its own
 private simulation, so it meets the ground and the paddle only as that simulation did.
 
-Every pair touches: PBD with PBD in lockstep substeps, the lighter of two EoL bodies keeping out
-of the heavier and EoL keeping out of BEM (contact rows, Eqs. 27-29 of the EoL paper), PBD keeping
-out of BEM and EoL; the pushed body is handed the opposite impulse one coupling interval later
-(explicit coupling, momentum exact; ``World(coupling_dt=None)`` picks the interval). Friction 0.5.
+Every pair touches: PBD with PBD in lockstep substeps, the two EoL bodies in one contact QP with
+one dt (Eqs. 27-29 of the EoL paper across objects), EoL keeping out of BEM with its contact rows
+and PBD keeping out of BEM and EoL; across methods the pushed body is handed the opposite impulse
+one coupling interval later (explicit coupling, momentum exact; ``World(coupling_dt=None)`` picks
+the interval). Friction 0.5.
 """
 
 from __future__ import annotations

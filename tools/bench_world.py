@@ -2,7 +2,7 @@
 method, the coupling intervals, the contacts of the last frame, milliseconds per frame (median
 over the timed frames, after warm-up frames that compile kernels and record graphs), the same
 split by stage (each method's stepping and the explicit "coupling": surface read-backs, broad
-phase, impulse exchange; from a second, profiled pass that synchronizes the device after each
+phase, impulse exchange, grouping of EoL bodies that may touch; from a second, profiled pass that synchronizes the device after each
 stage), EoL steps per frame and milliseconds per EoL step of the World (all EoL bodies one step),
 and the device memory high-water mark.
 
@@ -78,7 +78,7 @@ for name in args.scenes.split(","):
     n_prof = max(2, args.frames // 2)
     stages = {k: 1e3 * v / n_prof for k, v in sorted(world.timings.items())}
     eol_rows = sum(b.history[-1].active for b in world.bodies if type(b).__name__ == "EolBody" and b.history)
-    coupled = sum(len(getattr(b, "_moving", [])) for b in world._pushers)
+    coupled = sum(len(getattr(b, "_moving", [])) for b in world.bodies if hasattr(b, "set_moving_surfaces"))
     ms = 1e3 * float(np.median(times))
     print(json.dumps({
         "scene": name, "device": device.name, "resolution": args.resolution,

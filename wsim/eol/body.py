@@ -1554,7 +1554,8 @@ def _rows_between(bodies: Sequence[EolBody], keys: Sequence[int], works: list[_S
                                           for o, a, p in todo])
         if len(ri):
             records.append((k, ri, rf))
-    infos = [pairs.BodyInfo(node_shape=b.grid.node_shape, Q=b._axes(), inv_tau=1.0 / b._positive["contact_relaxation"],
+    infos = [pairs.BodyInfo(node_shape=b.grid.node_shape, origin=np.asarray(b.grid.origin, dtype=np.float64), h=b.grid.h,
+                            F=b.state.F, T=b.state.T, Q=b._axes(), inv_tau=1.0 / b._positive["contact_relaxation"],
                             key=int(key)) for b, key in zip(bodies, keys)]
     rows = pairs.assemble(records, found, infos)
     if rows is None:
@@ -1619,10 +1620,12 @@ def _solve(bodies: Sequence[EolBody], works: list[_StepWork], rows: pairs.PairRo
         cache[p] = (sub, pairs.joint_system(own, [works[k].own_at for k in members], members, sub))
     sub, system = cache[p]
     if guess is None:
+        between = np.zeros(sub.m, dtype=bool)
+        for k in members:
+            on = sub.owner == k
+            between[on] = np.isin(sub.ids[on], bodies[k].state.active_rows)
         guess = np.concatenate([np.isin(works[k].system.ids, bodies[k].state.active_rows) for k in members
-                                if works[k].system is not None]
-                               + [np.array([sub.ids[r] in bodies[sub.owner[r]].state.active_rows.tolist()
-                                            for r in range(sub.m)], dtype=bool)])
+                                if works[k].system is not None] + [between])
         guess = guess if guess.any() else None
     sol = solve_contact(system, dt_guess, active=guess)
     at = 0
@@ -1647,6 +1650,11 @@ def _solve(bodies: Sequence[EolBody], works: list[_StepWork], rows: pairs.PairRo
              for k in sub.sides}
     slip = sub.slip_w + dt_guess * sub.slip_a + pairs.slip_change(sub, total)
     P = pairs.row_friction(sub, lam0 + dt_guess * lam1, slip)
+    for k in sub.sides:  # the dt-independent part carries the friction
+        dv0[k] = dv0[k] + pairs.friction_changes(sub, k, P)
+    for dv in (dv0, dv1):  # each pair's angular momentum kept
+        for k, couple in pairs.moment_couples(sub, dv).items():
+            dv[k] = dv[k] + couple
     for k in members:
         st = bodies[k].state
         own_ids = works[k].system.ids[works[k].sol.active] if works[k].sol is not None else np.zeros(0, np.int64)
@@ -1656,10 +1664,9 @@ def _solve(bodies: Sequence[EolBody], works: list[_StepWork], rows: pairs.PairRo
         if side is None:
             w.changes = None
             continue
-        fric = pairs.friction_changes(sub, k, P)
-        w.changes = (side.nodes, dv0[k] + fric, dv1[k])
-        inv = np.where(side.inv_mass > 0.0, 1.0 / np.maximum(side.inv_mass, 1e-300), 0.0)[:, None]
-        w.pair_impulse = (side.Q @ (inv * (dv0[k] + fric)).sum(axis=0), side.Q @ (inv * dv1[k]).sum(axis=0))
+        w.changes = (side.nodes, dv0[k], dv1[k])
+        mass = 1.0 / side.inv_mass[:, None]
+        w.pair_impulse = (side.Q @ (mass * dv0[k]).sum(axis=0), side.Q @ (mass * dv1[k]).sum(axis=0))
         on = (sub.bodies == k).any(axis=1)
         w.pair_rows, w.pair_active = int(on.sum()), int((active & on).sum())
         w.pair_overlap = float(sub.overlap[on].sum())

@@ -18,7 +18,9 @@ itself out of the other's surface and handed it the push one coupling interval l
 fine grids (16 bodies at 32 cells reached 7.6e5 m/s).
 
 Rows are assembled here on the host from the samples' records (only samples inside another body
-travel), sparse per body over the nodes they touch. The joint QP's dual matrix is
+travel), per body as dense matrices over the rows and nodes it touches (a few hundred rows and a
+few thousand nodes at 32 cells: dense products beat sparse assembly of the samples' entries,
+20 ms a step through scipy.sparse for two 32-cell spheres on an H100's host). The joint QP's dual matrix is
 S = sum_bodies J_b M_b^-1 J_b^T over all rows of the touching bodies: each body's own rows keep
 the block its device assembly made, the rows between bodies add theirs and the cross terms with
 the own rows at the nodes both touch.
@@ -34,7 +36,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse as sp
 
 from wsim.eol.contact import ContactSystem
 from wsim.kernels.eol_contact import PAIR_RECORD
@@ -43,6 +44,7 @@ from wsim.kernels.eol_contact import PAIR_RECORD
 #: (< 2**31): PAIR_ID (1 + B's key) + A's collision cell
 PAIR_ID = 1 << 32
 FRICTION_SWEEPS = 30
+FRICTION_TOLERANCE = 1e-6  # the sweeps stop once no row's impulse changes by more than this of the largest bound
 
 
 def corner_offsets(node_shape: tuple[int, int, int]) -> np.ndarray:
@@ -54,40 +56,58 @@ def corner_offsets(node_shape: tuple[int, int, int]) -> np.ndarray:
 
 @dataclass(frozen=True)
 class BodyInfo:
-    """What the assembly needs of a body in the group: its grid's nodes per axis, Q (velocity axes
-    -> world), 1 / tau of its overlap relaxation, its key in the World (warm-start ids)."""
+    """What the assembly needs of a body in the group: its grid (nodes per axis, origin, h), its
+    Lagrangian map x = F y + T, Q (velocity axes -> world), 1 / tau of its overlap relaxation, its
+    key in the World (warm-start ids)."""
 
     node_shape: tuple[int, int, int]
+    origin: np.ndarray
+    h: float
+    F: np.ndarray
+    T: np.ndarray
     Q: np.ndarray
     inv_tau: float
     key: int
 
+    def node_positions(self, nodes: np.ndarray) -> np.ndarray:
+        """(n, 3) world positions of flat grid nodes."""
+        ny, nz = self.node_shape[1], self.node_shape[2]
+        ijk = np.stack([nodes // (ny * nz), (nodes // nz) % ny, nodes % nz], axis=1)
+        return (self.origin + self.h * ijk) @ self.F.T + self.T
+
 
 @dataclass
 class Side:
-    """One body's part of the rows between bodies: the touched ``nodes`` (sorted flat ids), their
-    inverse masses, J (m x 3 n, velocity axes: the rows' coefficients) and G (m x n: each row's
-    sampling weights of the body's velocity in the relative slip v_A - v_B, negative for B)."""
+    """One body's part of the rows between bodies: the ``rows`` it has a part in (indices of the
+    ``PairRows``), the touched ``nodes`` (sorted flat ids) with their inverse masses and world
+    positions ``x``, J (len(rows) x 3 n, dense, velocity axes: the rows' coefficients) and G
+    (len(rows) x n: each row's sampling weights of the body's velocity in the relative slip
+    v_A - v_B, negative for B), Q (velocity axes -> world) and ``lut`` (flat node id -> its
+    position in ``nodes``, -1 where untouched)."""
 
+    rows: np.ndarray
     nodes: np.ndarray
     inv_mass: np.ndarray
-    J: sp.csr_matrix
-    G: sp.csr_matrix
+    x: np.ndarray
+    J: np.ndarray
+    G: np.ndarray
     Q: np.ndarray
+    lut: np.ndarray
 
-    def local(self, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(positions in ``self.nodes``, mask of the given flat ids that are touched)."""
-        pos = np.minimum(np.searchsorted(self.nodes, nodes), len(self.nodes) - 1)
-        return pos, self.nodes[pos] == nodes
+    def scatter(self, values: np.ndarray, m: int) -> np.ndarray:
+        """(m, ...) with this side's per-row ``values`` in its rows, zero elsewhere."""
+        out = np.zeros((m,) + values.shape[1:])
+        out[self.rows] = values
+        return out
 
 
 @dataclass
 class PairRows:
     """The rows between bodies of one step (m of them): their warm-start ``ids`` and the body
-    (group index) that keeps them (``owner``: A), the pair of bodies (A, B) of each, J w, J a, b and overlap as in ``ContactSystem``,
-    D = sum_s sigma_s c_s (world: A's normal impulse per unit multiplier is -D), the relative slip
-    before contact from w and from a (area-weighted mean of v_A - v_B, world), each row's friction
-    coefficient, and each body's ``Side``."""
+    (group index) that keeps them (``owner``: A), the pair of bodies (A, B) of each, J w, J a, b
+    and overlap as in ``ContactSystem``, D = sum_s sigma_s c_s (world: A's normal impulse per unit
+    multiplier is -D), the relative slip before contact from w and from a (area-weighted mean of
+    v_A - v_B, world), each row's friction coefficient, and each body's ``Side``."""
 
     ids: np.ndarray
     owner: np.ndarray
@@ -101,18 +121,24 @@ class PairRows:
     slip_a: np.ndarray
     mu: np.ndarray
     sides: dict[int, Side] = field(default_factory=dict)
+    _cache: dict = field(default_factory=dict, repr=False)  # K and the couples' regions, made once a step
 
     @property
     def m(self) -> int:
         return len(self.b)
 
     def take(self, idx: np.ndarray) -> PairRows:
-        """The rows ``idx`` (those of one QP), with the sides of the bodies they touch."""
+        """The rows ``idx`` (sorted; those of one QP), with the sides of the bodies they touch."""
+        if len(idx) == self.m:
+            return self
+        new = np.full(self.m, -1)
+        new[idx] = np.arange(len(idx))
         sides = {}
         for b, s in self.sides.items():
-            J, G = s.J[idx], s.G[idx]
-            if J.nnz:
-                sides[b] = Side(nodes=s.nodes, inv_mass=s.inv_mass, J=J, G=G, Q=s.Q)
+            keep = new[s.rows] >= 0
+            if keep.any():
+                sides[b] = Side(rows=new[s.rows[keep]], nodes=s.nodes, inv_mass=s.inv_mass, x=s.x, J=s.J[keep],
+                                G=s.G[keep], Q=s.Q, lut=s.lut)
         return PairRows(ids=self.ids[idx], owner=self.owner[idx], bodies=self.bodies[idx], Jw=self.Jw[idx],
                         Ja=self.Ja[idx], b=self.b[idx], overlap=self.overlap[idx], D=self.D[idx],
                         slip_w=self.slip_w[idx], slip_a=self.slip_a[idx], mu=self.mu[idx], sides=sides)
@@ -123,16 +149,16 @@ def assemble(records: list[tuple[int, np.ndarray, np.ndarray]], pairs: list[tupl
     """The rows between bodies from the samples' records: (own body's group index, rec_i (N, 5),
     rec_f (N, ``PAIR_RECORD``)) per body (``kernels.eol_contact.pair_samples``); ``pairs`` (A, B,
     friction) by pair index. None when no sample is inside another body."""
-    own = np.concatenate([np.full(len(ri), b, dtype=np.int64) for b, ri, _ in records]) if records else np.zeros(0, np.int64)
-    if len(own) == 0:
+    if not records:
         return None
+    own = np.concatenate([np.full(len(ri), b, dtype=np.int64) for b, ri, _ in records])
     ri = np.concatenate([r for _, r, _ in records]).astype(np.int64)
     rf = np.concatenate([f for _, _, f in records]).reshape(-1, PAIR_RECORD)
     pair_ab = np.array([(a, b) for a, b, _ in pairs], dtype=np.int64).reshape(-1, 2)
     pair, own_is_a = ri[:, 0], ri[:, 1] != 0
     other = np.where(own_is_a, pair_ab[pair, 1], pair_ab[pair, 0])
     cells = int(ri[:, 4].max()) + 1
-    keys, row = np.unique(pair * cells + ri[:, 4], return_inverse=True)
+    keys, first, row = np.unique(pair * cells + ri[:, 4], return_index=True, return_inverse=True)
     row = row.reshape(-1)
     m = len(keys)
     c = rf[:, 32:35]
@@ -140,7 +166,7 @@ def assemble(records: list[tuple[int, np.ndarray, np.ndarray]], pairs: list[tupl
     sigma = np.where(own_is_a, 1.0, -1.0)
     rel_w = rf[:, 36:39] - rf[:, 42:45]  # own - other, world
     rel_a = rf[:, 39:42] - rf[:, 45:48]
-    inv_tau = np.array([bodies[b].inv_tau for b in own])
+    inv_tau = np.array([b.inv_tau for b in bodies])[own]
 
     def per_row(v: np.ndarray) -> np.ndarray:
         if v.ndim == 1:
@@ -149,11 +175,10 @@ def assemble(records: list[tuple[int, np.ndarray, np.ndarray]], pairs: list[tupl
 
     area = np.linalg.norm(c, axis=1)
     share = area / per_row(area)[row]  # the sample's share of its row's slip and friction
-    row_pair = pair[np.unique(row, return_index=True)[1]]
-    a_of_row = pair_ab[row_pair, 0]
+    row_pair = pair[first]
     out = PairRows(
         ids=PAIR_ID * (1 + np.array([bodies[b].key for b in pair_ab[row_pair, 1]], dtype=np.int64)) + keys % cells,
-        owner=a_of_row,
+        owner=pair_ab[row_pair, 0],
         bodies=pair_ab[row_pair],
         Jw=per_row(np.einsum("ij,ij->i", c, rel_w)),
         Ja=per_row(np.einsum("ij,ij->i", c, rel_a)),
@@ -166,74 +191,80 @@ def assemble(records: list[tuple[int, np.ndarray, np.ndarray]], pairs: list[tupl
     )
     # each body's side: its own samples (+c, sampling sign sigma) and the other's inside it (-c, -sigma)
     for b in np.unique(np.concatenate([own, other])):
-        parts = []
-        for mine, col, sign in ((own == b, 0, 1.0), (other == b, 1, -1.0)):
-            if mine.any():
-                parts.append((np.flatnonzero(mine), col, sign))
         info = bodies[b]
         offsets = corner_offsets(info.node_shape)
         rows, nodes, weight, mass, coeff, slip = [], [], [], [], [], []
-        for idx, col, sign in parts:
-            base = ri[idx, 2 + col]
+        for mine, col, sign in ((own == b, 0, 1.0), (other == b, 1, -1.0)):
+            idx = np.flatnonzero(mine)
+            if not len(idx):
+                continue
             wts = rf[idx, 8 * col:8 * col + 8]
-            on = wts > 0.0
-            k = np.nonzero(on)
+            k = np.nonzero(wts > 0.0)
             rows.append(row[idx][k[0]])
-            nodes.append((base[:, None] + offsets[None, :])[k])
+            nodes.append((ri[idx, 2 + col][:, None] + offsets[None, :])[k])
             weight.append(wts[k])
             mass.append(rf[idx, 16 + 8 * col:24 + 8 * col][k])
             coeff.append(sign * (c[idx] @ info.Q)[k[0]])  # world -> velocity axes: Q^T c
             slip.append(sign * (sigma[idx] * share[idx])[k[0]])
         rows_, nodes_ = np.concatenate(rows), np.concatenate(nodes)
-        weight_, mass_ = np.concatenate(weight), np.concatenate(mass)
-        touched, local = np.unique(nodes_, return_inverse=True)
-        local = local.reshape(-1)
-        inv_mass = np.zeros(len(touched))
-        inv_mass[local] = 1.0 / mass_
+        weight_ = np.concatenate(weight)
+        n_grid = int(np.prod(info.node_shape))
+        used = np.bincount(rows_, minlength=m) > 0  # no sorting: masks and running counts
+        touched_mask = np.bincount(nodes_, minlength=n_grid) > 0
+        touched = np.flatnonzero(touched_mask)
+        lut = np.cumsum(touched_mask) - 1
+        lut[~touched_mask] = -1
+        local = lut[nodes_]
+        side_rows = np.flatnonzero(used)
+        r_local = (np.cumsum(used) - 1)[rows_]
+        n = len(touched)
+        inv_mass = np.zeros(n)
+        inv_mass[local] = 1.0 / np.concatenate(mass)
         vals = weight_[:, None] * np.concatenate(coeff)
-        J = sp.csr_matrix((vals.ravel(), (np.repeat(rows_, 3), (3 * local[:, None] + np.arange(3)).ravel())),
-                          shape=(m, 3 * len(touched)))
-        G = sp.csr_matrix((weight_ * np.concatenate(slip), (rows_, local)), shape=(m, len(touched)))
-        out.sides[int(b)] = Side(nodes=touched, inv_mass=inv_mass, J=J, G=G, Q=info.Q)
+        flat = r_local * n + local
+        J = np.stack([np.bincount(flat, vals[:, d], minlength=len(side_rows) * n) for d in range(3)], axis=1)
+        G = np.bincount(flat, weight_ * np.concatenate(slip), minlength=len(side_rows) * n)
+        out.sides[int(b)] = Side(rows=side_rows, nodes=touched, inv_mass=inv_mass, x=info.node_positions(touched),
+                                 J=J.reshape(len(side_rows), 3 * n), G=G.reshape(len(side_rows), n), Q=info.Q, lut=lut)
     return out
 
 
-def own_rows_at(side: Side, packed: np.ndarray, nodes: np.ndarray) -> sp.csr_matrix:
+def own_rows_at(side: Side, packed: np.ndarray, nodes: np.ndarray) -> np.ndarray:
     """A body's own rows (the device's packed blocks: ``packed`` (m, 3 nb + 2) with their block
-    ``nodes`` (m, nb), ``wsim.eol.contact.block_nodes``) restricted to the nodes the rows between
-    bodies touch: (m, 3 n) over ``side.nodes``."""
+    ``nodes`` (m, nb), ``wsim.eol.contact.block_nodes``, -1 past the grid) at the nodes the rows
+    between bodies touch: (m, 3 n) over ``side.nodes``, dense."""
     m, nb = nodes.shape
-    pos, hit = side.local(np.where(nodes >= 0, nodes, 0))
-    hit &= nodes >= 0
-    k = np.nonzero(hit)
-    coeff = packed[:, : 3 * nb].reshape(m, nb, 3)[k]
-    return sp.csr_matrix((coeff.ravel(), (np.repeat(k[0], 3), (3 * pos[k][:, None] + np.arange(3)).ravel())),
-                         shape=(m, 3 * len(side.nodes)))
+    pos = np.where(nodes >= 0, side.lut[np.maximum(nodes, 0)], -1)
+    k = np.nonzero(pos >= 0)
+    out = np.zeros((m, len(side.nodes), 3))
+    out[k[0], pos[k]] = packed[:, : 3 * nb].reshape(m, nb, 3)[k]
+    return out.reshape(m, -1)
 
 
-def joint_system(own: list[ContactSystem | None], own_at: list[sp.csr_matrix | None], bodies: list[int],
+def joint_system(own: list[ContactSystem | None], own_at: list[np.ndarray | None], bodies: list[int],
                  rows: PairRows) -> ContactSystem:
     """One QP for touching bodies: the rows of each body in ``bodies`` (its ``own`` system, sorted
     by id, and those rows at the shared nodes ``own_at``), then the rows between them. S gets each
     body's block, the rows between bodies' sum_b J_b M_b^-1 J_b^T and the cross terms between a
     body's own rows and them at the nodes both touch."""
     sizes = [0 if s is None else s.m for s in own]
-    start = np.concatenate([[0], np.cumsum(sizes)])
+    start = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
     n_own, m = int(start[-1]), rows.m
     S = np.zeros((n_own + m, n_own + m))
     for k, b in enumerate(bodies):
         side = rows.sides.get(b)
-        JMinv = None if side is None else side.J.multiply(np.repeat(side.inv_mass, 3)[None, :]).tocsr()
+        JMinv = None if side is None else side.J * np.repeat(side.inv_mass, 3)[None, :]
         if JMinv is not None:
-            S[n_own:, n_own:] += (JMinv @ side.J.T).toarray()
+            r = n_own + side.rows
+            S[np.ix_(r, r)] += JMinv @ side.J.T
         if own[k] is None:
             continue
         sl = slice(start[k], start[k + 1])
         S[sl, sl] = own[k].S
         if JMinv is not None and own_at[k] is not None:
-            C = (own_at[k] @ JMinv.T).toarray()
-            S[sl, n_own:] = C
-            S[n_own:, sl] = C.T
+            C = own_at[k] @ JMinv.T
+            S[sl, n_own + side.rows] = C
+            S[n_own + side.rows, sl] = C.T
     parts = [s for s in own if s is not None]
 
     def cat(name: str, pair: np.ndarray) -> np.ndarray:
@@ -249,13 +280,13 @@ def node_changes(rows: PairRows, b: int, lam: np.ndarray) -> np.ndarray:
     """(n, 3) velocity change of body b's touched nodes (velocity axes) from multipliers ``lam``
     of the rows between bodies: -M^-1 J^T lambda."""
     side = rows.sides[b]
-    return -side.inv_mass[:, None] * (side.J.T @ lam).reshape(-1, 3)
+    return -side.inv_mass[:, None] * (lam[side.rows] @ side.J).reshape(-1, 3)
 
 
-def own_changes(rows: PairRows, b: int, own_at: sp.csr_matrix, lam: np.ndarray) -> np.ndarray:
+def own_changes(rows: PairRows, b: int, own_at: np.ndarray, lam: np.ndarray) -> np.ndarray:
     """(n, 3) velocity change of body b's nodes touched by the rows between bodies (velocity axes)
     from the multipliers ``lam`` of its own rows (``own_rows_at``): -M^-1 J_own^T lambda there."""
-    return -rows.sides[b].inv_mass[:, None] * (own_at.T @ lam).reshape(-1, 3)
+    return -rows.sides[b].inv_mass[:, None] * (lam @ own_at).reshape(-1, 3)
 
 
 def row_friction(rows: PairRows, lam: np.ndarray, slip: np.ndarray) -> np.ndarray:
@@ -272,18 +303,26 @@ def row_friction(rows: PairRows, lam: np.ndarray, slip: np.ndarray) -> np.ndarra
     if not np.any(bound > 0.0):
         return P
     n = rows.D / np.maximum(np.linalg.norm(rows.D, axis=1), 1e-300)[:, None]
-    K = sum(s.G.multiply(s.inv_mass[None, :]) @ s.G.T for s in rows.sides.values()).tocsr()
-    diag = K.diagonal()
-    step = 1.0 / np.maximum(np.asarray(abs(K).sum(axis=1)).ravel(), 1e-300)
+    if "K" not in rows._cache:
+        K = np.zeros((m, m))
+        for s in rows.sides.values():
+            K[np.ix_(s.rows, s.rows)] += (s.G * s.inv_mass[None, :]) @ s.G.T
+        rows._cache["K"] = (K, np.diag(K).copy(), 1.0 / np.maximum(np.abs(K).sum(axis=1), 1e-300))
+    K, diag, step = rows._cache["K"]
 
     def tangential(v: np.ndarray) -> np.ndarray:
         return v - np.einsum("ij,ij->i", v, n)[:, None] * n
 
+    tol = FRICTION_TOLERANCE * float(bound.max())
     for _ in range(FRICTION_SWEEPS):
         u = tangential(slip + K @ P)
-        P = tangential(P - step[:, None] * u)
-        size = np.linalg.norm(P, axis=1)
-        P *= np.minimum(1.0, bound / np.maximum(size, 1e-300))[:, None]
+        new = tangential(P - step[:, None] * u)
+        size = np.linalg.norm(new, axis=1)
+        new *= np.minimum(1.0, bound / np.maximum(size, 1e-300))[:, None]
+        done = float(np.abs(new - P).max()) <= tol
+        P = new
+        if done:
+            break
     P[diag <= 0.0] = 0.0
     return P
 
@@ -292,7 +331,44 @@ def friction_changes(rows: PairRows, b: int, P: np.ndarray) -> np.ndarray:
     """(n, 3) velocity change of body b's touched nodes (velocity axes) from the friction impulses
     P of the rows between bodies: M^-1 G^T P, turned into the body's axes."""
     side = rows.sides[b]
-    return side.inv_mass[:, None] * ((side.G.T @ P) @ side.Q)
+    return side.inv_mass[:, None] * ((side.G.T @ P[side.rows]) @ side.Q)
+
+
+def moment_couples(rows: PairRows, changes: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+    """Velocity changes (n, 3 per body, velocity axes) that keep each pair's angular momentum:
+    a row's impulse acts on each body at the mass centroid of the cell its sample lies in (the
+    mass-weighted weights that keep nodes holding a sliver of material from being flung), which
+    differ between the two bodies by a fraction of a cell, so the equal and opposite impulses
+    ``changes`` (from ``node_changes`` and ``friction_changes``) carry a net moment tau. Each pair
+    gets the couple -tau, as rigid rotations omega x (x - xbar_b) of the nodes its rows touch in
+    either body (about each region's mass centroid xbar_b): no net force, the least kinetic energy
+    for that moment (one omega, (I_A + I_B) omega = -tau with I_b the regions' inertia tensors).
+    With the centroids left uncorrected a frictionless glancing blow of two 6-cell spheres gained
+    4.9 % of |L|; weights moved onto the sample instead put the push back on light nodes."""
+    if "regions" not in rows._cache:  # per pair: the nodes its rows touch in each body, their inertia
+        regions = []
+        for a, b in sorted({(int(p), int(q)) for p, q in rows.bodies}):
+            on = (rows.bodies[:, 0] == a) & (rows.bodies[:, 1] == b)
+            inertia = np.zeros((3, 3))
+            parts = []
+            for k in (a, b):
+                side = rows.sides[k]
+                used = np.flatnonzero(np.abs(side.G[on[side.rows]]).sum(axis=0) > 0.0)
+                m = 1.0 / side.inv_mass[used]
+                x = side.x[used]
+                r = x - (m @ x) / m.sum()
+                inertia += (m * (r * r).sum(axis=1)).sum() * np.eye(3) - (r * m[:, None]).T @ r
+                parts.append((k, used, m, x, r))
+            regions.append((np.linalg.pinv(inertia, rcond=1e-12), parts))
+        rows._cache["regions"] = regions
+    out = {b: np.zeros_like(dv) for b, dv in changes.items()}
+    for inverse, parts in rows._cache["regions"]:
+        tau = sum((m[:, None] * np.cross(x, changes[k][used] @ rows.sides[k].Q.T)).sum(axis=0)
+                  for k, used, m, x, _ in parts)
+        omega = -inverse @ tau
+        for k, used, _, _, r in parts:
+            out[k][used] += np.cross(omega, r) @ rows.sides[k].Q  # world -> velocity axes
+    return out
 
 
 def slip_change(rows: PairRows, changes: dict[int, np.ndarray]) -> np.ndarray:
@@ -301,5 +377,5 @@ def slip_change(rows: PairRows, changes: dict[int, np.ndarray]) -> np.ndarray:
     out = np.zeros((rows.m, 3))
     for b, dv in changes.items():
         side = rows.sides[b]
-        out += side.G @ (dv @ side.Q.T)
+        out[side.rows] += side.G @ (dv @ side.Q.T)
     return out

@@ -1,17 +1,13 @@
-"""The explicit exchange between EoL bodies on fine grids (issue 18): the first layers of
-``scenes/eol_pile.py`` at a given resolution, with the World's exchange on (the pusher's push is
-handed to the pushed body over the next interval) or off (nobody is handed it: momentum is not
-kept, only to show where the growth comes from). One JSON line per frame: each body's steps, its
-largest Eulerian residual |v*| [m/s] and contact rows; a final line with the outcome.
+"""The first layers of ``scenes/eol_pile.py`` at a resolution (issue 18: the pile at the paper's 32
+cells): per frame, each body's steps, largest v* and contact rows, the frame's seconds and the
+QP's size (rows and bodies of the largest joint QP of the frame).
 
-    python tools/study_eol_exchange.py --resolution 16 --bodies 8 --frames 7 --device cpu
-    python tools/study_eol_exchange.py --resolution 32 --bodies 8 --frames 7 --no-exchange
+    python tools/study_eol_pile.py --resolution 16 --bodies 8 --frames 7 --device cpu
+    python tools/study_eol_pile.py --resolution 32 --bodies 16 --frames 9 --device cuda:0
 
-Measured (README, known limits of contact between bodies): with the exchange treating the partner
-as rigid, 16 cells on the CPU reached v* = 96,000 m/s by frame 6 and 32 cells on an H100 left a
-grid in frame 6; with the rows sharing the push with the partner's give, 280 m/s at 16 cells and
-7.6e5 m/s by frame 8 at 32 cells (``tools/results/study_eol_exchange_pile32_h100.jsonl``);
-without the exchange the 32-cell run stays below 8 m/s.
+With the explicit exchange between EoL bodies (before one QP joined them) v* climbed to
+7.6e5 m/s by frame 8 at 32 cells on an H100 (``tools/results/study_eol_exchange_pile32_h100.jsonl``)
+and body_01 reached 280 m/s at 16 cells (8 bodies, CPU).
 """
 
 from __future__ import annotations
@@ -35,13 +31,10 @@ ap.add_argument("--resolution", type=int, default=16)
 ap.add_argument("--bodies", type=int, default=8, help="the first N bodies of the pile (4 a layer)")
 ap.add_argument("--frames", type=int, default=7)
 ap.add_argument("--device", default=None)
-ap.add_argument("--no-exchange", action="store_true", help="hand nobody the pushes (diagnosis only)")
 args = ap.parse_args()
 
 world = eol_pile.build(device=args.device, resolution=args.resolution)
 world.bodies[:] = world.bodies[:args.bodies]
-if args.no_exchange:
-    world._exchange = lambda interval: None  # the World's hand-over, switched off for the study
 device = wp.get_device(args.device)
 start = time.perf_counter()
 outcome = "ran"
@@ -59,5 +52,5 @@ try:
         print(json.dumps({"frame": f + 1, "seconds": round(time.perf_counter() - t, 2), "bodies": bodies}), flush=True)
 except SimulationDiverged as e:
     outcome = str(e)
-print(json.dumps({"resolution": args.resolution, "bodies": args.bodies, "exchange": not args.no_exchange,
+print(json.dumps({"resolution": args.resolution, "bodies": args.bodies,
                   "device": device.name, "outcome": outcome, "seconds": round(time.perf_counter() - start, 1)}))
