@@ -18,9 +18,9 @@ itself out of the other's surface and handed it the push one coupling interval l
 fine grids (16 bodies at 32 cells reached 7.6e5 m/s).
 
 Rows are assembled here on the host from the samples' records (only samples inside another body
-travel), per body as dense matrices over the rows and nodes it touches (a few hundred rows and a
-few thousand nodes at 32 cells: dense products beat sparse assembly of the samples' entries,
-20 ms a step through scipy.sparse for two 32-cell spheres on an H100's host). The joint QP's dual matrix is
+travel), per body as sparse matrices over the rows and nodes it touches, built from the samples'
+entries summed per (row, node) without a sort by scipy (which took 20 ms a step for two 32-cell
+spheres on an H100's host; dense matrices over the touched nodes 5-10 ms). The joint QP's dual matrix is
 S = sum_bodies J_b M_b^-1 J_b^T over all rows of the touching bodies: each body's own rows keep
 the block its device assembly made, the rows between bodies add theirs and the cross terms with
 the own rows at the nodes both touch.
@@ -36,6 +36,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.sparse as sp
 
 from wsim.eol.contact import ContactSystem
 from wsim.kernels.eol_contact import PAIR_RECORD
@@ -80,8 +81,8 @@ class BodyInfo:
 class Side:
     """One body's part of the rows between bodies: the ``rows`` it has a part in (indices of the
     ``PairRows``), the touched ``nodes`` (sorted flat ids) with their inverse masses and world
-    positions ``x``, J (len(rows) x 3 n, dense, velocity axes: the rows' coefficients) and G
-    (len(rows) x n: each row's sampling weights of the body's velocity in the relative slip
+    positions ``x``, J (len(rows) x 3 n, CSR, velocity axes: the rows' coefficients) and G
+    (len(rows) x n, CSR: each row's sampling weights of the body's velocity in the relative slip
     v_A - v_B, negative for B), Q (velocity axes -> world) and ``lut`` (flat node id -> its
     position in ``nodes``, -1 where untouched)."""
 
@@ -89,15 +90,15 @@ class Side:
     nodes: np.ndarray
     inv_mass: np.ndarray
     x: np.ndarray
-    J: np.ndarray
-    G: np.ndarray
+    J: sp.csr_matrix
+    G: sp.csr_matrix
     Q: np.ndarray
     lut: np.ndarray
 
-    def scatter(self, values: np.ndarray, m: int) -> np.ndarray:
-        """(m, ...) with this side's per-row ``values`` in its rows, zero elsewhere."""
-        out = np.zeros((m,) + values.shape[1:])
-        out[self.rows] = values
+    def JMinv(self) -> sp.csr_matrix:
+        """J M^-1 (the same pattern, each column over its node's mass)."""
+        out = self.J.copy()
+        out.data = out.data * np.repeat(self.inv_mass, 3)[out.indices]
         return out
 
 
@@ -209,7 +210,7 @@ def assemble(records: list[tuple[int, np.ndarray, np.ndarray]], pairs: list[tupl
         rows_, nodes_ = np.concatenate(rows), np.concatenate(nodes)
         weight_ = np.concatenate(weight)
         n_grid = int(np.prod(info.node_shape))
-        used = np.bincount(rows_, minlength=m) > 0  # no sorting: masks and running counts
+        used = np.bincount(rows_, minlength=m) > 0  # no sorting of the nodes: masks and running counts
         touched_mask = np.bincount(nodes_, minlength=n_grid) > 0
         touched = np.flatnonzero(touched_mask)
         lut = np.cumsum(touched_mask) - 1
@@ -217,15 +218,22 @@ def assemble(records: list[tuple[int, np.ndarray, np.ndarray]], pairs: list[tupl
         local = lut[nodes_]
         side_rows = np.flatnonzero(used)
         r_local = (np.cumsum(used) - 1)[rows_]
-        n = len(touched)
+        n, ms = len(touched), len(side_rows)
         inv_mass = np.zeros(n)
         inv_mass[local] = 1.0 / np.concatenate(mass)
         vals = weight_[:, None] * np.concatenate(coeff)
-        flat = r_local * n + local
-        J = np.stack([np.bincount(flat, vals[:, d], minlength=len(side_rows) * n) for d in range(3)], axis=1)
-        G = np.bincount(flat, weight_ * np.concatenate(slip), minlength=len(side_rows) * n)
+        # the entries summed per (row, node), in row-major order: CSR without scipy's sort
+        key, inv = np.unique(r_local * n + local, return_inverse=True)
+        inv = inv.reshape(-1)
+        J_data = np.stack([np.bincount(inv, vals[:, d], minlength=len(key)) for d in range(3)], axis=1)
+        G_data = np.bincount(inv, weight_ * np.concatenate(slip), minlength=len(key))
+        per_row_nnz = np.bincount(key // n, minlength=ms)
+        ptr = np.concatenate([[0], np.cumsum(per_row_nnz)])
+        col = key % n
+        J = sp.csr_matrix((J_data.ravel(), (3 * col[:, None] + np.arange(3)).ravel(), 3 * ptr), shape=(ms, 3 * n))
+        G = sp.csr_matrix((G_data, col, ptr), shape=(ms, n))
         out.sides[int(b)] = Side(rows=side_rows, nodes=touched, inv_mass=inv_mass, x=info.node_positions(touched),
-                                 J=J.reshape(len(side_rows), 3 * n), G=G.reshape(len(side_rows), n), Q=info.Q, lut=lut)
+                                 J=J, G=G, Q=info.Q, lut=lut)
     return out
 
 
@@ -253,16 +261,16 @@ def joint_system(own: list[ContactSystem | None], own_at: list[np.ndarray | None
     S = np.zeros((n_own + m, n_own + m))
     for k, b in enumerate(bodies):
         side = rows.sides.get(b)
-        JMinv = None if side is None else side.J * np.repeat(side.inv_mass, 3)[None, :]
+        JMinv = None if side is None else side.JMinv()
         if JMinv is not None:
             r = n_own + side.rows
-            S[np.ix_(r, r)] += JMinv @ side.J.T
+            S[np.ix_(r, r)] += (JMinv @ side.J.T).toarray()
         if own[k] is None:
             continue
         sl = slice(start[k], start[k + 1])
         S[sl, sl] = own[k].S
         if JMinv is not None and own_at[k] is not None:
-            C = own_at[k] @ JMinv.T
+            C = (JMinv @ own_at[k].T).T
             S[sl, n_own + side.rows] = C
             S[n_own + side.rows, sl] = C.T
     parts = [s for s in own if s is not None]
@@ -280,7 +288,7 @@ def node_changes(rows: PairRows, b: int, lam: np.ndarray) -> np.ndarray:
     """(n, 3) velocity change of body b's touched nodes (velocity axes) from multipliers ``lam``
     of the rows between bodies: -M^-1 J^T lambda."""
     side = rows.sides[b]
-    return -side.inv_mass[:, None] * (lam[side.rows] @ side.J).reshape(-1, 3)
+    return -side.inv_mass[:, None] * (side.J.T @ lam[side.rows]).reshape(-1, 3)
 
 
 def own_changes(rows: PairRows, b: int, own_at: np.ndarray, lam: np.ndarray) -> np.ndarray:
@@ -306,7 +314,7 @@ def row_friction(rows: PairRows, lam: np.ndarray, slip: np.ndarray) -> np.ndarra
     if "K" not in rows._cache:
         K = np.zeros((m, m))
         for s in rows.sides.values():
-            K[np.ix_(s.rows, s.rows)] += (s.G * s.inv_mass[None, :]) @ s.G.T
+            K[np.ix_(s.rows, s.rows)] += (s.G.multiply(s.inv_mass[None, :]) @ s.G.T).toarray()
         rows._cache["K"] = (K, np.diag(K).copy(), 1.0 / np.maximum(np.abs(K).sum(axis=1), 1e-300))
     K, diag, step = rows._cache["K"]
 
@@ -353,7 +361,7 @@ def moment_couples(rows: PairRows, changes: dict[int, np.ndarray]) -> dict[int, 
             parts = []
             for k in (a, b):
                 side = rows.sides[k]
-                used = np.flatnonzero(np.abs(side.G[on[side.rows]]).sum(axis=0) > 0.0)
+                used = np.flatnonzero(np.asarray(abs(side.G[np.flatnonzero(on[side.rows])]).sum(axis=0)).ravel() > 0.0)
                 m = 1.0 / side.inv_mass[used]
                 x = side.x[used]
                 r = x - (m @ x) / m.sum()
