@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 import trimesh
 
 import warp as wp
@@ -210,6 +211,9 @@ def test_contact_qp_kkt_t7(rng):
     lam2, _ = solve_lcp(S, r)
     np.testing.assert_allclose(lam2, ref, atol=1e-7 * max(1.0, np.abs(ref).max()))
     np.testing.assert_allclose(nnls_lcp(S, r), ref, atol=1e-7 * max(1.0, np.abs(ref).max()))  # the fallback
+    lam3, _ = solve_lcp(sp.csr_matrix(S), r)  # sparse S (the joint QP of many touching bodies): sparse LU
+    np.testing.assert_allclose(lam3, ref, atol=1e-7 * max(1.0, np.abs(ref).max()))
+    np.testing.assert_allclose(nnls_lcp(sp.csr_matrix(S), r), ref, atol=1e-7 * max(1.0, np.abs(ref).max()))
 
 
 @pytest.mark.parametrize("block", [1, 2])

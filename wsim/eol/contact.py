@@ -34,6 +34,7 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.optimize as sopt
 import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 
 
 def surface_samples(vertices: np.ndarray, faces: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -120,27 +121,41 @@ class ActiveSolver:
     Cholesky: S = J M^-1 J^T is a Gram matrix, positive definite when the active rows are
     independent; least squares (the minimum-norm multipliers) when it is not (dependent rows, a
     row on massless nodes only). Cholesky is ~30x cheaper than lstsq's SVD at the hundred-odd
-    rows of a body resting on the ground."""
+    rows of a body resting on the ground. A sparse S (the QP of many touching bodies, whose rows
+    share nodes only with their neighbours': ``wsim.eol.pairs.joint_system``) is factorized by
+    sparse LU (SuperLU): a dense Cholesky of the thousands of rows of a pile is O(m^3)."""
 
-    def __init__(self, S: np.ndarray) -> None:
-        self.S = S
+    def __init__(self, S: np.ndarray | sp.spmatrix) -> None:
+        self.S = S.tocsr() if sp.issparse(S) else S
         self._key: bytes | None = None
         self._factor: Any = None
 
     def solve(self, idx: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         key = idx.tobytes()
         if key != self._key:
-            Saa = self.S[np.ix_(idx, idx)]
-            try:
-                self._factor = ("chol", sla.cho_factor(Saa, check_finite=False))
-                if not np.all(np.isfinite(self._factor[1][0])):
-                    raise np.linalg.LinAlgError
-            except (np.linalg.LinAlgError, ValueError):
-                self._factor = ("lstsq", Saa)
+            if sp.issparse(self.S):
+                Saa = self.S[idx][:, idx].tocsc()
+                try:
+                    self._factor = ("lu", spla.splu(Saa, permc_spec="MMD_AT_PLUS_A"))
+                except RuntimeError:  # exactly singular: dependent rows
+                    self._factor = ("lstsq", Saa.toarray())
+            else:
+                Saa = self.S[np.ix_(idx, idx)]
+                try:
+                    self._factor = ("chol", sla.cho_factor(Saa, check_finite=False))
+                    if not np.all(np.isfinite(self._factor[1][0])):
+                        raise np.linalg.LinAlgError
+                except (np.linalg.LinAlgError, ValueError):
+                    self._factor = ("lstsq", Saa)
             self._key = key
         kind, f = self._factor
         if kind == "chol":
             return sla.cho_solve(f, rhs, check_finite=False)
+        if kind == "lu":
+            x = f.solve(np.asarray(rhs, dtype=np.float64))
+            if np.all(np.isfinite(x)):
+                return x
+            self._factor = kind, f = ("lstsq", self.S[idx][:, idx].toarray())
         return np.linalg.lstsq(f, rhs, rcond=None)[0]
 
 
@@ -153,7 +168,7 @@ def solve_lcp(S: np.ndarray, r: np.ndarray, max_iter: int = 50, active: np.ndarr
     m = len(r)
     solver = solver or ActiveSolver(S)
     lam = np.zeros(m)
-    c = 1.0 / max(float(np.mean(np.diag(S))), 1e-300)
+    c = 1.0 / max(float(np.mean(S.diagonal())), 1e-300)
     active = (r > 0.0) if active is None else np.asarray(active, dtype=bool)
     for it in range(1, max_iter + 1):
         lam = np.zeros(m)
@@ -177,6 +192,7 @@ def nnls_lcp(S: np.ndarray, r: np.ndarray) -> np.ndarray:
     finite and robust where the active-set iteration cycles on nearly dependent rows). A
     semidefinite S (dependent rows) gets a 1e-12 relative diagonal shift first."""
     m = len(r)
+    S = S.toarray() if sp.issparse(S) else S
     shift = 1e-12 * max(float(np.max(np.diag(S))), 1e-300)
     L = sla.cholesky(S + shift * np.eye(m), lower=True, check_finite=False)
     lam, _ = sopt.nnls(L.T, sla.solve_triangular(L, r, lower=True, check_finite=False), maxiter=50 * m)

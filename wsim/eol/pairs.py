@@ -45,6 +45,7 @@ from wsim.kernels.eol_contact import PAIR_RECORD
 #: (< 2**31): PAIR_ID (1 + B's key) + A's collision cell
 PAIR_ID = 1 << 32
 FRICTION_SWEEPS = 30
+SPARSE_ROWS = 400  # a joint QP with more rows is factorized sparse (``joint_system``)
 FRICTION_TOLERANCE = 1e-6  # the sweeps stop once no row's impulse changes by more than this of the largest bound
 
 
@@ -254,25 +255,37 @@ def joint_system(own: list[ContactSystem | None], own_at: list[np.ndarray | None
     """One QP for touching bodies: the rows of each body in ``bodies`` (its ``own`` system, sorted
     by id, and those rows at the shared nodes ``own_at``), then the rows between them. S gets each
     body's block, the rows between bodies' sum_b J_b M_b^-1 J_b^T and the cross terms between a
-    body's own rows and them at the nodes both touch."""
+    body's own rows and them at the nodes both touch. Past ``SPARSE_ROWS`` rows S is sparse
+    (scipy CSR; ``ActiveSolver`` then factorizes by sparse LU): a row shares nodes only with the
+    rows of neighbouring collision cells."""
     sizes = [0 if s is None else s.m for s in own]
     start = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
     n_own, m = int(start[-1]), rows.m
-    S = np.zeros((n_own + m, n_own + m))
+    blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (row ids, column ids, dense block)
     for k, b in enumerate(bodies):
         side = rows.sides.get(b)
         JMinv = None if side is None else side.JMinv()
         if JMinv is not None:
             r = n_own + side.rows
-            S[np.ix_(r, r)] += (JMinv @ side.J.T).toarray()
+            blocks.append((r, r, (JMinv @ side.J.T).toarray()))
         if own[k] is None:
             continue
-        sl = slice(start[k], start[k + 1])
-        S[sl, sl] = own[k].S
+        sl = np.arange(start[k], start[k + 1])
+        blocks.append((sl, sl, own[k].S))
         if JMinv is not None and own_at[k] is not None:
             C = (JMinv @ own_at[k].T).T
-            S[sl, n_own + side.rows] = C
-            S[n_own + side.rows, sl] = C.T
+            blocks.append((sl, n_own + side.rows, C))
+            blocks.append((n_own + side.rows, sl, C.T))
+    n = n_own + m
+    if n > SPARSE_ROWS:
+        coo = [(np.repeat(r, len(c))[B.ravel() != 0.0], np.tile(c, len(r))[B.ravel() != 0.0], B.ravel()[B.ravel() != 0.0])
+               for r, c, B in blocks]
+        S = sp.csr_matrix((np.concatenate([v for _, _, v in coo]),
+                           (np.concatenate([i for i, _, _ in coo]), np.concatenate([j for _, j, _ in coo]))), shape=(n, n))
+    else:
+        S = np.zeros((n, n))
+        for r, c, B in blocks:
+            S[np.ix_(r, c)] += B
     parts = [s for s in own if s is not None]
 
     def cat(name: str, pair: np.ndarray) -> np.ndarray:
