@@ -11,7 +11,9 @@ one per interval, whichever is more), one JSON line per run:
 * ``rest``: a PBD ball dropped 4 cm onto a BEM cube on the ground, 1 s: the ball's depth in the
   cube at the end [mm], its largest speed in the last 0.25 s [m/s], wall time per frame.
 
-Between EoL bodies (the lighter pushes), at 1, 4, 16 and 64 intervals per frame (60 fps):
+Between EoL bodies, at 1, 4, 16 and 64 intervals per frame (60 fps). Touching EoL bodies share one
+QP (``wsim.eol.pairs``), so the interval only groups them; with the explicit exchange between EoL
+bodies it replaced (``tools/results/study_coupling_eol_cpu.jsonl``) the interval set the lag:
 
 * ``eol_throw``: two EoL spheres (R = 0.15 m, 6 cells, the second 10x denser) thrown at each
   other at 1 m/s in zero gravity, 0.4 s: the light one's velocity after (perfectly inelastic

@@ -6,10 +6,11 @@ adaptive dt). After each frame every body is checked for NaN/Inf, and ``run`` ha
 the USD writer. BEM bodies of one dt that are joined by ``PointJoint`` s or may touch
 (``body_contact``) step together: one constraint solve per step covers all of them
 (``wsim.constraints.solve_group``, ``wsim.contact``); PBD bodies that may touch step their
-substeps in lockstep (``wsim.pbd.contact``). Across methods, and between EoL bodies, contact is an
-explicit exchange at a coupling interval: one body (the pusher: PBD, or the lighter EoL body)
-keeps itself out of the other's surface as it moves over the interval and the other is handed
-the opposite impulse over the next interval (``_couple_surfaces``).
+substeps in lockstep (``wsim.pbd.contact``); EoL bodies that may touch step together with one dt
+and one contact QP (``EolBody.advance_group``, ``wsim.eol.pairs``). Across methods contact is an
+explicit exchange at a coupling interval: one body (the pusher: PBD, or EoL against BEM) keeps
+itself out of the other's surface as it moves over the interval and the other is handed the
+opposite impulse over the next interval (``_couple_surfaces``).
 """
 
 from __future__ import annotations
@@ -30,9 +31,9 @@ from wsim.device import resolve_device
 from wsim.errors import InvalidParameter
 from wsim.usd import UsdWriter, check_up_axis
 
-#: longest coupling interval [s] when EoL bodies push other bodies (``World(coupling_dt=None)``):
-#: the lag of the exchange rings an EoL box resting on another (mean speed 142 mm/s at 1/60 s intervals,
-#: 9.6 at 1/240 s, 4.6 at 1/960 s; ``tools/study_coupling.py``)
+#: longest coupling interval [s] when EoL bodies push BEM bodies (``World(coupling_dt=None)``): the
+#: exchange's lag rang an EoL box resting on another when EoL bodies still pushed each other this
+#: way (mean speed 142 mm/s at 1/60 s intervals, 9.6 at 1/240 s, 4.6 at 1/960 s; ``tools/study_coupling.py``)
 EOL_COUPLING_DT = 1.0e-3
 
 _UP = {"Y": np.array([0.0, 1.0, 0.0]), "Z": np.array([0.0, 0.0, 1.0])}
@@ -72,18 +73,18 @@ class World:
         device: Warp device ("cpu", "cuda:0", ...); None picks cuda:0 when present, else cpu.
         up_axis: "Y" or "Z", the axis the scene is built in (ground planes default to it).
         coupling_dt: the interval [s] at which bodies exchange contact explicitly (a push reaches
-            the other body one interval late): PBD with BEM and EoL bodies, EoL with BEM and with
-            other EoL bodies. It must divide the frame, and every BEM body's dt must divide it.
-            None: automatic - with PBD bodies and BEM or EoL bodies in one World, the shortest
-            interval that is a whole number of every BEM body's steps and at least one PBD
-            substep; with EoL bodies pushing (and no PBD) the longest interval of whole BEM steps
-            no longer than ``EOL_COUPLING_DT`` (1 ms); otherwise the frame. A frame-long
-            interval made a thrown ball rebound 40 % too fast off a BEM cube (above the elastic
-            bound: the lag adds energy; ``tools/study_coupling.py``).
+            the other body one interval late): PBD with BEM and EoL bodies, EoL with BEM bodies;
+            EoL bodies that may meet within it step together (one QP, no lag). It must divide the
+            frame, and every BEM body's dt must divide it. None: automatic - with PBD bodies and
+            BEM or EoL bodies in one World, the shortest interval that is a whole number of every
+            BEM body's steps and at least one PBD substep; with EoL and BEM bodies (and no PBD)
+            the longest interval of whole BEM steps no longer than ``EOL_COUPLING_DT`` (1 ms);
+            otherwise the frame. A frame-long interval made a thrown ball rebound 40 % too fast
+            off a BEM cube (above the elastic bound: the lag adds energy; ``tools/study_coupling.py``).
         body_contact: bodies touch each other: BEM bodies of one dt (``wsim.contact``, one
-            constraint solve per step), PBD bodies (``wsim.pbd.contact``, substeps in lockstep) and
-            every pair across methods and of EoL bodies (explicit coupling, ``coupling_dt``);
-            False lets them pass through each other.
+            constraint solve per step), PBD bodies (``wsim.pbd.contact``, substeps in lockstep),
+            EoL bodies (one QP, ``wsim.eol.pairs``) and every pair across methods (explicit
+            coupling, ``coupling_dt``); False lets them pass through each other.
     """
 
     def __init__(
@@ -457,27 +458,23 @@ def _couple_surfaces(pusher: Body, targets: Sequence[Body], index: dict[int, int
 def _touching(bodies: Sequence[Body], interval: float, g: float) -> list[list[Body]]:
     """EoL bodies that may touch each other within the coming interval, as groups (union-find over
     their surfaces' boxes, each grown by how far it can move: ``max_speed`` times the interval, the
-    fall under gravity and a cell); a body alone is a group of one."""
+    fall under gravity and a cell; connected components); a body alone is a group of one."""
     boxes = []
     for b in bodies:
         x = b.points()
         grow = _max_speed(b) * interval + g * interval**2 + b.grid.h
         boxes.append((x.min(axis=0) - grow, x.max(axis=0) + grow))
-    parent = list(range(len(bodies)))
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
 
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for i in range(len(bodies)):
-        for j in range(i + 1, len(bodies)):
-            if np.all(boxes[i][1] >= boxes[j][0]) and np.all(boxes[j][1] >= boxes[i][0]):
-                parent[find(i)] = find(j)
+    n = len(bodies)
+    links = [(i, j) for i in range(n) for j in range(i + 1, n)
+             if np.all(boxes[i][1] >= boxes[j][0]) and np.all(boxes[j][1] >= boxes[i][0])]
+    i, j = np.array(links, dtype=np.int64).reshape(-1, 2).T
+    _, label = connected_components(coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n)), directed=False)
     groups: dict[int, list[Body]] = {}
-    for i, b in enumerate(bodies):
-        groups.setdefault(find(i), []).append(b)
+    for k, b in enumerate(bodies):
+        groups.setdefault(int(label[k]), []).append(b)
     return list(groups.values())
 
 

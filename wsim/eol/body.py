@@ -24,8 +24,10 @@ One step (Table II's stages):
 
 Precision: float64 everywhere on the grid (strain is a difference of nearby absolute coordinates;
 the paper's J-bar and LS sums are ill-conditioned in float32). Contact with colliders is the
-paper's frictionless volume constraint. Other bodies' surfaces (``set_moving_surfaces``, issue 18)
-get the same rows, plus Coulomb friction at the grid nodes they push.
+paper's frictionless volume constraint. Other methods' bodies' surfaces (``set_moving_surfaces``,
+issue 18) get the same rows, plus Coulomb friction at the grid nodes they push. EoL bodies that
+may touch step together with one dt and one QP across them (``advance_group``, the paper's Eq. 29
+across objects; the rows between them in ``wsim.eol.pairs``).
 """
 
 from __future__ import annotations
@@ -1572,21 +1574,17 @@ def _rows_between(bodies: Sequence[EolBody], keys: Sequence[int], works: list[_S
 def _problems(works: list[_StepWork], rows: pairs.PairRows | None) -> list[tuple[list[int], np.ndarray]]:
     """The QPs of a step: bodies joined by rows between them (with those rows' indices) solve one
     together; a body with only its own rows solves its own; a body without rows none."""
-    parent = list(range(len(works)))
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
 
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    if rows is not None:
-        for a, b in rows.bodies:
-            parent[find(int(a))] = find(int(b))
+    n = len(works)
+    links = rows.bodies if rows is not None else np.zeros((0, 2), dtype=np.int64)
+    _, label = connected_components(coo_matrix((np.ones(len(links)), (links[:, 0], links[:, 1])), shape=(n, n)),
+                                    directed=False)
     groups: dict[int, list[int]] = {}
     for k, w in enumerate(works):
         if w.m or (rows is not None and k in rows.sides):
-            groups.setdefault(find(k), []).append(k)
+            groups.setdefault(int(label[k]), []).append(k)
     out = []
     for members in groups.values():
         idx = np.zeros(0, dtype=np.int64)
