@@ -225,24 +225,53 @@ def vec3d_of(p: wp.vec3) -> wp.vec3d:
     return wp.vec3d(wp.float64(p[0]), wp.float64(p[1]), wp.float64(p[2]))
 
 
+vec8d = wp.types.vector(length=8, dtype=wp.float64)
+
+
+@wp.func
+def corner_node(surf: ContactSurface, base: int, c: int) -> int:
+    """Flat index of corner c (= 4 i + 2 j + k) of the cell whose first node is ``base``."""
+    return base + ((c // 4) * surf.grid.shape[1] + (c // 2) % 2) * surf.grid.shape[2] + c % 2
+
+
+@wp.func
+def cell_weights(surf: ContactSurface, yp: wp.vec3d):
+    """The grid cell holding intermediate point yp: its first node's flat index, the 8 corners'
+    row weights Phi_c m_c / sum Phi m (the mass-weighted velocity of ``accumulate_row``; zero on
+    nodes without mass) and sum Phi m (zero: no corner holds material)."""
+    cell, t = sample_cell(surf, yp)
+    base = (cell[0] * surf.grid.shape[1] + cell[1]) * surf.grid.shape[2] + cell[2]
+    pm = wp.float64(0.0)
+    for c in range(8):
+        pm += corner_weight(c, t) * surf.mass[corner_node(surf, base, c)]
+    weights = vec8d()
+    if pm > wp.float64(0.0):
+        for c in range(8):
+            weights[c] = corner_weight(c, t) * surf.mass[corner_node(surf, base, c)] / pm
+    return base, weights, pm
+
+
+@wp.func
+def cell_velocity(surf: ContactSurface, base: int, weights: vec8d, field: wp.array(dtype=wp.vec3d)) -> wp.vec3d:
+    """World velocity sum_c weight_c Q field_c of a cell (``cell_weights``), Q = to_axes^T (the
+    body's velocity axes -> world)."""
+    v = wp.vec3d()
+    for c in range(8):
+        v += weights[c] * field[corner_node(surf, base, c)]
+    return wp.transpose(surf.to_axes) * v
+
+
 @wp.func
 def applied_point(surf: ContactSurface, yp: wp.vec3d) -> wp.vec3d:
     """Where a sample's row impulse acts on this body (intermediate coordinates): the centroid of
     its cell's nodes with the row's weights Phi_s m_s / sum Phi m (``accumulate_row``)."""
-    cell, t = sample_cell(surf, yp)
-    ny = surf.grid.shape[1]
-    nz = surf.grid.shape[2]
-    pm = wp.float64(0.0)
+    base, weights, pm = cell_weights(surf, yp)
+    if pm <= wp.float64(0.0):
+        return yp
     y = wp.vec3d()
     for c in range(8):
-        node = ((cell[0] + c // 4) * ny + cell[1] + (c // 2) % 2) * nz + cell[2] + c % 2
-        wm = corner_weight(c, t) * surf.mass[node]
-        pm += wm
-        corner = wp.vec3d(wp.float64(cell[0] + c // 4), wp.float64(cell[1] + (c // 2) % 2), wp.float64(cell[2] + c % 2))
-        y += wm * (surf.grid.origin + surf.grid.h * corner)
-    if pm > wp.float64(0.0):
-        return y / pm
-    return yp
+        y += weights[c] * node_position(corner_node(surf, base, c), surf.grid)
+    return y
 
 
 @wp.kernel
@@ -608,40 +637,6 @@ def accumulate(total: wp.array(dtype=wp.vec3d), part: wp.array(dtype=wp.vec3d)):
 
 # -- contact between EoL bodies in one QP (Eq. 29 across objects; issue 18) -------------------------
 
-vec8d = wp.types.vector(length=8, dtype=wp.float64)
-
-
-@wp.func
-def cell_weights(surf: ContactSurface, yp: wp.vec3d):
-    """The grid cell holding intermediate point yp: its first node's flat index, the 8 corners'
-    row weights Phi_c m_c / sum Phi m (the mass-weighted velocity of ``accumulate_row``; zero on
-    nodes without mass) and sum Phi m (zero: no corner holds material)."""
-    cell, t = sample_cell(surf, yp)
-    ny = surf.grid.shape[1]
-    nz = surf.grid.shape[2]
-    base = (cell[0] * ny + cell[1]) * nz + cell[2]
-    pm = wp.float64(0.0)
-    for c in range(8):
-        pm += corner_weight(c, t) * surf.mass[base + (c // 4) * ny * nz + ((c // 2) % 2) * nz + c % 2]
-    weights = vec8d()
-    if pm > wp.float64(0.0):
-        for c in range(8):
-            weights[c] = corner_weight(c, t) * surf.mass[base + (c // 4) * ny * nz + ((c // 2) % 2) * nz + c % 2] / pm
-    return base, weights, pm
-
-
-@wp.func
-def cell_velocity(surf: ContactSurface, base: int, weights: vec8d, field: wp.array(dtype=wp.vec3d)) -> wp.vec3d:
-    """World velocity sum_c weight_c Q field_c of a cell (``cell_weights``), Q = to_axes^T (the
-    body's velocity axes -> world)."""
-    ny = surf.grid.shape[1]
-    nz = surf.grid.shape[2]
-    v = wp.vec3d()
-    for c in range(8):
-        v += weights[c] * field[base + (c // 4) * ny * nz + ((c // 2) % 2) * nz + c % 2]
-    return wp.transpose(surf.to_axes) * v
-
-
 @wp.kernel
 def world_surface(surf: ContactSurface, out: wp.array(dtype=wp.vec3)):
     """The tracked surface's vertices in the world, x = F y + T (float32: a Warp mesh's points)."""
@@ -651,7 +646,7 @@ def world_surface(surf: ContactSurface, out: wp.array(dtype=wp.vec3)):
 
 
 #: floats of one pair sample's record (``pair_samples``)
-PAIR_RECORD = 51
+PAIR_RECORD = 48
 
 
 @wp.kernel
@@ -689,7 +684,7 @@ def pair_samples(
     Record (``rec_i``): pair, own_is_a, own cell's first node, other's, A's collision cell.
     ``rec_f`` (``PAIR_RECORD`` floats): own weights (8), other's (8), own node masses (8), other's
     (8), c_s (3, world), overlap volume |n dGamma . n_B| d (1), own velocity at x_s from w and a
-    (3 + 3, world), other's (3 + 3), x_s (3). Records past the buffer's rows are counted, not
+    (3 + 3, world), other's (3 + 3). Records past the buffer's rows are counted, not
     written: the caller grows the buffer and launches again."""
     i = wp.tid()
     yp, x, an = sample_world(own, i)
@@ -731,10 +726,8 @@ def pair_samples(
     for c in range(8):
         rec_f[slot, c] = wo[c]
         rec_f[slot, 8 + c] = wb[c]
-        rec_f[slot, 16 + c] = own.mass[base_o + (c // 4) * own.grid.shape[1] * own.grid.shape[2]
-                                      + ((c // 2) % 2) * own.grid.shape[2] + c % 2]
-        rec_f[slot, 24 + c] = other.mass[base_b + (c // 4) * other.grid.shape[1] * other.grid.shape[2]
-                                        + ((c // 2) % 2) * other.grid.shape[2] + c % 2]
+        rec_f[slot, 16 + c] = own.mass[corner_node(own, base_o, c)]
+        rec_f[slot, 24 + c] = other.mass[corner_node(other, base_b, c)]
     vw = cell_velocity(own, base_o, wo, own_w)
     va = cell_velocity(own, base_o, wo, own_a)
     bw = cell_velocity(other, base_b, wb, other_w)
@@ -745,7 +738,6 @@ def pair_samples(
         rec_f[slot, 39 + d] = va[d]
         rec_f[slot, 42 + d] = bw[d]
         rec_f[slot, 45 + d] = ba[d]
-        rec_f[slot, 48 + d] = x[d]
     rec_f[slot, 35] = vol
 
 

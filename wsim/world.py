@@ -212,7 +212,6 @@ class World:
             self._targets = {id(p): [b for b in self._pushed if b is not p and not (id(p) in eol and id(b) in eol)]
                              for p in pushers}
             self._pushers = [p for p in pushers if self._targets[id(p)] and id(p) not in eol]  # PBD
-            self._eol_targets = {id(p): self._targets[id(p)] for p in self._eol}
             if self.body_contact:  # bodies that can touch: participants of one dt
                 by_dt: dict[float, list[Body]] = {}
                 for b in self.bodies:
@@ -271,7 +270,7 @@ class World:
         grouped = {id(b) for bodies, _ in self._groups for b in bodies} | {id(b) for b in self._lockstep}
         pushers = self._pushers
         late = {id(b) for b in pushers} | {id(b) for b in self._eol}
-        coupled = pushers or any(self._eol_targets.values())
+        coupled = pushers or any(self._targets[id(p)] for p in self._eol)
         start: dict[int, np.ndarray] = {}
         if coupled:
             self._timed("coupling", lambda: start.update({id(b): b.points() for b in self._pushed}))
@@ -286,10 +285,10 @@ class World:
         # ... then the EoL bodies, those that may touch in one group each, after the BEM bodies they push ...
         if self._eol:
             for p in self._eol:
-                if self._eol_targets[id(p)]:
-                    self._timed("coupling", _couple_surfaces, p, self._eol_targets[id(p)], self._index, start, end,
+                if self._targets[id(p)]:
+                    self._timed("coupling", _couple_surfaces, p, self._targets[id(p)], self._index, start, end,
                                 t1 - t0, g)
-            for group in self._timed("coupling", _touching, self._eol, t1 - t0, g):
+            for group in self._timed("coupling", _touching, self._eol, t1 - t0, g, start):
                 if len(group) == 1:
                     self._timed("eol", group[0].advance, t0, t1)
                 else:
@@ -309,7 +308,7 @@ class World:
         """Hand every pushed body what the pushers pushed it with over the interval just stepped
         (keys: the bodies' indices in ``bodies``)."""
         impulses: dict[int, np.ndarray] = {}
-        for b in self._pushers + [p for p in self._eol if self._eol_targets[id(p)]]:
+        for b in self._pushers + [p for p in self._eol if self._targets[id(p)]]:
             for key, J in b.moving_surface_impulses().items():
                 impulses[key] = impulses.get(key, 0.0) + J
         for key, J in impulses.items():
@@ -455,13 +454,14 @@ def _couple_surfaces(pusher: Body, targets: Sequence[Body], index: dict[int, int
     pusher.set_moving_surfaces(surfaces)
 
 
-def _touching(bodies: Sequence[Body], interval: float, g: float) -> list[list[Body]]:
-    """EoL bodies that may touch each other within the coming interval, as groups (union-find over
-    their surfaces' boxes, each grown by how far it can move: ``max_speed`` times the interval, the
-    fall under gravity and a cell; connected components); a body alone is a group of one."""
+def _touching(bodies: Sequence[Body], interval: float, g: float, points: dict[int, np.ndarray]) -> list[list[Body]]:
+    """EoL bodies that may touch each other within the coming interval, as groups (connected
+    components of their surfaces' overlapping boxes, each grown by how far it can move:
+    ``max_speed`` times the interval, the fall under gravity and a cell); a body alone is a group
+    of one. ``points``: the bodies' points where the interval's coupling already read them."""
     boxes = []
     for b in bodies:
-        x = b.points()
+        x = points[id(b)] if id(b) in points else b.points()
         grow = _max_speed(b) * interval + g * interval**2 + b.grid.h
         boxes.append((x.min(axis=0) - grow, x.max(axis=0) + grow))
     from scipy.sparse import coo_matrix

@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
@@ -740,6 +740,7 @@ class EolBody(VertexImpulses, Body):
         self._load_force = np.zeros(3)
         self._colliders: list[Collider] = []
         self._surface = None  # contact samples and rows, made once the body can touch something
+        self._row_groups = 0  # row groups (colliders, other methods' surfaces) with accumulators
         self._moving: list[_MovingSurface] = []  # other bodies' surfaces in reach this advance
         self._span = (0.0, 1.0)
         self._fraction = 0.0  # where in the span the moving surfaces were placed this step
@@ -807,7 +808,8 @@ class EolBody(VertexImpulses, Body):
         self._launch.clear()  # the recorded launches and the views hold the old grid's arrays
         self._views.clear()
         self._allocate_grid_arrays()
-        if self._surface is not None:  # rows laid out on the new grid
+        if self._surface is not None:  # samples and rows laid out on the new grid
+            self._ensure_surface()
             self._contact_slots(self._row_groups, regrid=True)
         self._force_pass()
 
@@ -869,31 +871,18 @@ class EolBody(VertexImpulses, Body):
         self._surfaces = surfaces
         self._colliders = list(surfaces)
         self._surface = None
+        self._row_groups = 0
         self._contact_slots(len(self._colliders))
 
     def _contact_slots(self, n: int, regrid: bool = False) -> None:
-        """Contact samples and row accumulators for n row groups (colliders, then other bodies'
-        surfaces), made only once the body can touch something and grown, never shrunk, with n;
-        ``regrid``: laid out again on a new grid."""
-        if n == 0 or (self._surface is not None and not regrid and n <= self._row_groups):
+        """Row accumulators for n row groups (colliders, then other methods' surfaces), made only
+        once the body can touch something and grown, never shrunk, with n; ``regrid``: laid out
+        again on a new grid."""
+        if n == 0 or (not regrid and n <= self._row_groups):
             return
+        self._ensure_surface()
         d = self._device
         k = self.collision_block
-        if self._surface is None:
-            face, bary, share = surface_samples(self._z_vertices, self._tracked_faces,
-                                                self._positive["contact_spacing"] * self.grid.h)
-            surf = kc.ContactSurface()  # the constant part; the frame is set each step
-            surf.y, surf.faces = self.state.y_vertices, self._faces_dev
-            surf.sample_face = wp.array(face, dtype=wp.int32, device=d)
-            surf.sample_bary = wp.array(bary, dtype=wp.vec3d, device=d)
-            surf.sample_share = wp.array(share, dtype=wp.float64, device=d)
-            surf.inv_tau = wp.float64(1.0 / self._positive["contact_relaxation"])
-            self._surface = surf
-        surf = self._surface
-        self._ccells = tuple(-(-c // k) for c in self.grid.cells)
-        surf.grid = self._grid
-        surf.block, surf.ccells = k, wp.vec3i(*self._ccells)
-        surf.mass = self._mass  # the lumped masses (updated in place by each force pass)
         self._row_groups = n
         n_rows = n * int(np.prod(self._ccells))
         width = 3 * (k + 1) ** 3 + 2
@@ -1318,9 +1307,26 @@ class EolBody(VertexImpulses, Body):
         surf.F, surf.T, surf.to_axes = _mat(self.state.F), wp.vec3d(*self.state.T), _mat(self._axes().T)
 
     def _ensure_surface(self) -> None:
-        """Contact samples for a body that touches other EoL bodies but no collider or surface."""
+        """The contact samples (made once) and their collision grid on the current grid: what rows
+        against colliders and surfaces and rows between EoL bodies (``_pair_samples``) both need;
+        a body that touches only other EoL bodies gets no row accumulators."""
+        d = self._device
+        k = self.collision_block
         if self._surface is None:
-            self._contact_slots(1)
+            face, bary, share = surface_samples(self._z_vertices, self._tracked_faces,
+                                                self._positive["contact_spacing"] * self.grid.h)
+            surf = kc.ContactSurface()  # the constant part; the frame is set each step
+            surf.y, surf.faces = self.state.y_vertices, self._faces_dev
+            surf.sample_face = wp.array(face, dtype=wp.int32, device=d)
+            surf.sample_bary = wp.array(bary, dtype=wp.vec3d, device=d)
+            surf.sample_share = wp.array(share, dtype=wp.float64, device=d)
+            surf.inv_tau = wp.float64(1.0 / self._positive["contact_relaxation"])
+            self._surface = surf
+        surf = self._surface
+        self._ccells = tuple(-(-c // k) for c in self.grid.cells)
+        surf.grid = self._grid
+        surf.block, surf.ccells = k, wp.vec3i(*self._ccells)
+        surf.mass = self._mass  # the lumped masses (updated in place by each force pass)
 
     def _place_world_mesh(self) -> None:
         """This body's tracked surface in the world where it is now, as a Warp mesh (made once,
@@ -1438,7 +1444,7 @@ class EolBody(VertexImpulses, Body):
         order = np.argsort(ids, kind="stable")
         vec = host[m * m:m * m + 7 * m].reshape(7, m)[:, order]
         system = ContactSystem(S=host[: m * m].reshape(m, m)[np.ix_(order, order)], Jw=vec[0], Ja=vec[1], b=vec[2],
-                               ids=ids[order], collider=ids[order] // int(np.prod(self._ccells)), overlap=vec[3],
+                               ids=ids[order], overlap=vec[3],
                                jsum=vec[4:].T.copy())
         return system, order
 
@@ -1472,7 +1478,7 @@ class _StepWork:
     active: int = 0
     own_at: Any = None  # its own rows at the nodes the rows between bodies touch (``pairs.own_rows_at``)
     changes: tuple | None = None
-    pair_impulse: tuple = (np.zeros(3), np.zeros(3))
+    pair_impulse: tuple = field(default_factory=lambda: (np.zeros(3), np.zeros(3)))
     pair_rows: int = 0
     pair_active: int = 0
     pair_overlap: float = 0.0

@@ -203,16 +203,16 @@ def nnls_lcp(S: np.ndarray, r: np.ndarray) -> np.ndarray:
 class ContactSystem:
     """The QP of Eq. (29) in its dual form, all an active-set solve needs (m rows, sorted by id):
     S = J M^-1 J^T (m x m), J w and J a (the rows' rates at the unconstrained velocity w and
-    acceleration a), b, the rows' ``ids``, ``collider`` and ``overlap`` [m^3], and ``jsum`` (m, 3) =
+    acceleration a), b, the rows' ``ids`` and ``overlap`` [m^3], and ``jsum`` (m, 3) =
     sum_s J_s over nodes with mass (row i's impulse lambda_i changes the momentum by
-    -lambda_i jsum_i). ``EolBody`` assembles it on the device, so only m-sized data reach the host."""
+    -lambda_i jsum_i). ``EolBody`` assembles it on the device, so only m-sized data reach the host;
+    S is a scipy sparse matrix for the large joint QPs of touching bodies (``wsim.eol.pairs``)."""
 
-    S: np.ndarray
+    S: np.ndarray | sp.spmatrix
     Jw: np.ndarray
     Ja: np.ndarray
     b: np.ndarray
     ids: np.ndarray
-    collider: np.ndarray
     overlap: np.ndarray
     jsum: np.ndarray
 
@@ -258,7 +258,7 @@ def contact_qp(rows: ContactRows, inv_mass: np.ndarray, w: np.ndarray, a: np.nda
     J = rows.J if sp.issparse(rows.J) else sp.csr_matrix(rows.J)
     JMinv = J @ sp.diags(inv_mass)
     system = ContactSystem(S=(JMinv @ J.T).toarray(), Jw=J @ w, Ja=J @ a, b=rows.b, ids=rows.ids,
-                           collider=rows.collider, overlap=rows.overlap,
+                           overlap=rows.overlap,
                            jsum=(J @ sp.diags((inv_mass > 0.0).astype(float))).toarray().reshape(rows.m, -1, 3).sum(axis=1))
     sol = solve_contact(system, dt_guess, active)
     return replace(sol, w0=w - JMinv.T @ sol.lam0, w1=a - JMinv.T @ sol.lam1)

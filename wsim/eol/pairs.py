@@ -292,9 +292,8 @@ def joint_system(own: list[ContactSystem | None], own_at: list[np.ndarray | None
         return np.concatenate([getattr(s, name) for s in parts] + [pair])
 
     return ContactSystem(S=S, Jw=cat("Jw", rows.Jw), Ja=cat("Ja", rows.Ja), b=cat("b", rows.b),
-                         ids=cat("ids", rows.ids), collider=cat("collider", np.full(m, -1)),
-                         overlap=cat("overlap", rows.overlap), jsum=np.concatenate([s.jsum for s in parts]
-                                                                                    + [np.zeros((m, 3))]))
+                         ids=cat("ids", rows.ids), overlap=cat("overlap", rows.overlap),
+                         jsum=np.concatenate([s.jsum for s in parts] + [np.zeros((m, 3))]))
 
 
 def node_changes(rows: PairRows, b: int, lam: np.ndarray) -> np.ndarray:
