@@ -1,4 +1,4 @@
-"""Command line: ``wsim run SCENE.py -o OUT.usda`` and ``wsim info``.
+"""Command line: ``wsim run SCENE.py -o OUT.usdc``, ``wsim recover OUT.usdc`` and ``wsim info``.
 
 A scene is a plain Python file that defines ``build(mesh=None, device=None) -> wsim.World`` and,
 optionally, ``FRAMES`` (its default frame count). It can also run standalone:
@@ -11,6 +11,9 @@ frames are appended to OUT when OUT is the file that run wrote (same prims and t
 file holds the whole animation, with frames after the checkpoint replaced; when OUT is missing or
 holds something else, a new file starts at the checkpoint's frame. Checkpoints keep being saved
 to the resumed file unless ``--checkpoint`` names another.
+
+A run killed outright (SIGKILL, out of memory) leaves its frames in ``OUT.journal``;
+``wsim recover OUT`` writes them to OUT (``wsim.usd``).
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ DEFAULT_FRAMES = 90
 
 
 def _add_run_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("-o", "--out", help="output USD file (.usda, .usdc or .usd); default: <scene>.usda")
+    p.add_argument("-o", "--out", help="output USD file: .usdc or .usd binary, .usda text (default: <scene>.usdc)")
     p.add_argument("--frames", type=int, default=None, help="frames to simulate (default: the scene's FRAMES)")
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:N (default: cuda:0 if present, else cpu)")
     p.add_argument("--up-axis", default=None, choices=["Y", "Z", "y", "z"], help="up axis of the USD stage (Z for Blender)")
@@ -44,7 +47,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
 def _run(build: Callable[..., object], frames_default: int, name: str, args: argparse.Namespace) -> int:
     from wsim.world import World
 
-    out = args.out or f"{name}.usda"
+    out = args.out or f"{name}.usdc"
     before = _mtime(out)
 
     def on_sigterm(signum: int, frame: object) -> None:
@@ -131,10 +134,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     run = sub.add_parser("run", help="run a scene script and write USD")
     run.add_argument("scene", help="path of a scene script (defines build(mesh=None, device=None))")
     _add_run_options(run)
+    rec = sub.add_parser("recover", help="write the frames of a killed run (OUT.journal) to its USD file")
+    rec.add_argument("out", help="the killed run's output file (its journal is OUT.journal)")
+    rec.add_argument("-o", "--to", default=None, help="write them here instead of OUT")
     sub.add_parser("info", help="print versions, devices and the cache folder")
     args = parser.parse_args(argv)
     if args.command == "info":
         print(info())
+        return 0
+    if args.command == "recover":
+        from wsim.usd import recover
+
+        try:
+            path, frames = recover(args.out, args.to)
+        except WsimError as exc:
+            print(f"wsim: error: {exc}", file=sys.stderr)
+            return 1
+        print(f"wsim: {frames} frames recovered into {path}")
         return 0
     from wsim.device import quiet_warp
 
