@@ -61,7 +61,7 @@ def build(mesh: str | None = None, device: str | None = None, count: int = 6, de
     shape.apply_translation(-shape.bounding_box.centroid)
     material = wsim.ElasticMaterial(mu=3.0e4, nu=0.45, rho=1000.0)
     dt = 0.005
-    ops = build_operators(shape, material, dt, device=world.device, progress=True)
+    ops = build_operators(shape, material, dt, device=world.device)
     rng = np.random.default_rng(5)
     for k in range(count):
         angle = 2.4 * k

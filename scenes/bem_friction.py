@@ -30,7 +30,7 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
     shape = wmesh.bumpy_cube(size=0.15, divisions=3, amplitude=0.005) if mesh is None else wmesh.load_fitted(mesh, 0.15)
     material = wsim.ElasticMaterial(mu=1.0e6, nu=0.3, rho=3000.0)
     dt = 0.003
-    ops = build_operators(shape, material, dt, device=world.device, progress=True)
+    ops = build_operators(shape, material, dt, device=world.device)
     lift = 0.005 - shape.bounds[0, 1]
     for k, mu in enumerate(MU):
         world.add(wsim.BemBody(shape, material, dt, operators=ops, name=f"mu_{k}", friction=mu,

@@ -29,7 +29,7 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
     shape = trimesh.creation.box(extents=(0.1, 0.1, 0.1)).subdivide() if mesh is None else wmesh.load_fitted(mesh, 0.1)
     material = wsim.ElasticMaterial(mu=1.0e5, nu=0.45, rho=1000.0)
     dt = 0.005
-    ops = build_operators(shape, material, dt, device=world.device, progress=True)
+    ops = build_operators(shape, material, dt, device=world.device)
     rng = np.random.default_rng(3)
     for k in range(6):
         x, z = 0.06 * np.cos(2.1 * k), 0.06 * np.sin(2.1 * k)

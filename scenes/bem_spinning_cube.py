@@ -34,7 +34,6 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
             position=(0.0, 1.0, 0.0),
             velocity=(0.3, 4.0, 0.0),
             angular_velocity=(0.5, 3.0, 1.0),
-            progress=True,
         )
     )
     x = body.rest_vertices

@@ -36,14 +36,14 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
     bar = wmesh.beam(length=0.6, width=0.1, height=0.1, divisions=(12, 2, 2))
     bar.apply_translation((-0.3, 0.0, 0.0))
     bar_body = world.add(wsim.BemBody(bar, wsim.ElasticMaterial(mu=3.0e4, nu=0.45, rho=1000.0), 1.0 / 300.0,
-                                      name="bar", position=(0.0, 0.5, -0.3), double_nodes=60.0, progress=True))
+                                      name="bar", position=(0.0, 0.5, -0.3), double_nodes=60.0))
     squeeze(bar_body, 1, 3.0e3, lambda x: np.abs(x[:, 0]) < 0.1)
     if mesh is None:
         ring = wmesh.torus(major_radius=0.1, minor_radius=0.05, major_sections=24, minor_sections=8)
     else:
         ring = wmesh.load_fitted(mesh, 0.3)
     ring_body = world.add(wsim.BemBody(ring, wsim.ElasticMaterial(mu=5.0e4, nu=0.48, rho=500.0), 1.0 / 600.0,
-                                       name="torus", position=(0.0, 0.5, 0.3), progress=True))
+                                       name="torus", position=(0.0, 0.5, 0.3)))
     squeeze(ring_body, 0, 4.0e3, lambda x: np.ones(len(x), dtype=bool))
     return world
 

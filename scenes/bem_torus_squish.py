@@ -31,7 +31,7 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
         ring = wmesh.load_fitted(mesh, 0.3)
     ring.apply_translation((0.0, 0.5, 0.0))
     body = world.add(wsim.BemBody(ring, wsim.ElasticMaterial(mu=5.0e4, nu=0.48, rho=500.0), 0.002, name="torus",
-                                  frame_update=False, progress=True))
+                                  frame_update=False))
     x = ring.vertices[:, 0]
     span = x.max() - x.min()
     sides = np.flatnonzero(np.abs(x - 0.5 * (x.max() + x.min())) > 0.42 * span)

@@ -45,7 +45,7 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
     # one body
     beam = wmesh.beam(0.5, 0.1, 0.1, (10, 2, 2))
     beam.apply_translation((-0.25, 0.6, -0.2))
-    single = world.add(wsim.BemBody(beam, MATERIAL, DT, name="beam", progress=True))
+    single = world.add(wsim.BemBody(beam, MATERIAL, DT, name="beam"))
     axis = np.array([0.0, 0.6, -0.2])
     x = beam.vertices[:, 0]
     for end, sign in ((x < x.min() + 1e-9, -1.0), (x > x.max() - 1e-9, 1.0)):
@@ -59,7 +59,7 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
         p = cube.copy()
         p.apply_translation((-0.2 + 0.1 * k, 0.6, 0.2))
         pieces.append(p)
-    bodies, joints = decompose(pieces, MATERIAL, DT, name="cubes", device=world.device, build={"progress": True})
+    bodies, joints = decompose(pieces, MATERIAL, DT, name="cubes", device=world.device)
     for b in bodies:
         world.add(b)
     for j in joints:

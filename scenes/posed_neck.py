@@ -46,7 +46,7 @@ def make_body(mesh: str | None = None, name: str = "creature") -> wsim.PbdBody:
     if mesh is None:
         shape = wmesh.neck_body(length=1.6, rings=48, sectors=16)
     else:
-        shape = wmesh.load(mesh)
+        shape = wmesh.load_fitted(mesh, 1.6)  # as long as the procedural creature, like every scene's --mesh
     v = np.asarray(shape.vertices)
     long_axis = np.eye(3)[int(np.argmax(np.ptp(v, axis=0)))]
     u = v @ long_axis

@@ -32,14 +32,19 @@ def device(request) -> str:
 
 @pytest.fixture(autouse=True, scope="session")
 def _isolated_cache(tmp_path_factory):
-    """Never read or write the user's real cache folder from tests."""
-    old = os.environ.get("WSIM_CACHE_DIR")
+    """Never read or write the user's real cache folder from tests, nor obey the user's cache cap
+    or progress and verbosity settings (``WSIM_CACHE_MAX_GB``, ``WSIM_PROGRESS``, ``WSIM_VERBOSE``)."""
+    names = ("WSIM_CACHE_DIR", "WSIM_CACHE_MAX_GB", "WSIM_PROGRESS", "WSIM_VERBOSE")
+    old = {k: os.environ.get(k) for k in names}
+    for k in names[1:]:
+        os.environ.pop(k, None)
     os.environ["WSIM_CACHE_DIR"] = str(tmp_path_factory.mktemp("wsim-cache"))
     yield
-    if old is None:
-        os.environ.pop("WSIM_CACHE_DIR", None)
-    else:
-        os.environ["WSIM_CACHE_DIR"] = old
+    for k, v in old.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
 
 
 @pytest.fixture

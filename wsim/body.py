@@ -19,6 +19,7 @@ What a new method implements (the README's "Architecture" section says the same)
 
 from __future__ import annotations
 
+import math
 import time
 from abc import ABC, abstractmethod
 from typing import TYPE_CHECKING, Any, Sequence
@@ -59,11 +60,24 @@ class Body(ABC):
         self.profile = False  # synchronize the device at each ``_tick`` so GPU time lands in its stage
         self._device: wp.Device | None = None  # set by bind
         self.frame_dt: float | None = None  # the World's frame length [s], set at its first step
+        #: the body's display colour in the USD output (RGB in [0, 1]); None: one of a palette, by
+        #: the body's place in the World
+        self.display_color: tuple[float, float, float] | None = None
 
     @property
     def bound(self) -> bool:
         """True once the body belongs to a World (its state is allocated)."""
         return self._device is not None
+
+    def _frame_of(self, t: float, start: bool = False) -> int | None:
+        """The World frame being computed when a user's function is evaluated at time t [s], for
+        error messages; numbered like ``SimulationDiverged.step`` (the frame at whose end the state
+        lands: t in (37/fps - 1/fps, 37/fps] is frame 37). ``start``: t is a step's start time (the
+        step lies after it), else its end time. None before the body's first World step."""
+        if not self.frame_dt:
+            return None
+        q = t / self.frame_dt
+        return math.floor(q + 1e-9) + 1 if start else max(math.ceil(q - 1e-9), 0)
 
     def _require_bound(self) -> None:
         if self._device is None:

@@ -17,6 +17,24 @@ Design:
   write complete files and the last rename wins.
 * A cache is an optimisation: a bad file is reported in one warning line and recomputed, and an
   unwritable cache folder only costs the recomputation. Neither ever stops a simulation.
+* **Size cap, least recently used eviction.** BEM operator sets are hundreds of MB per body, so
+  the folder is capped at ``$WSIM_CACHE_MAX_GB`` gigabytes (decimal, 10**9 bytes; float;
+  default :data:`DEFAULT_MAX_GB` = 10; ``0`` or ``inf`` means no cap). "Used" means stored or
+  loaded: a successful ``load`` sets the file's mtime to now with ``os.utime`` (atime is
+  useless on noatime/relatime mounts), so mtime is the time of last use. After every successful
+  ``store`` the least recently used entries (oldest mtime first, ties by name) are deleted until
+  the folder's total is within the cap; the entry just stored is never evicted, so a single
+  entry larger than the cap stays (alone). Sizes are file sizes (``st_size``).
+* **Only our own files are ever deleted.** Eviction and ``clear_cache`` consider only regular
+  files (not symlinks, not folders) directly in the cache folder whose name is exactly
+  ``<kind>-<32 lowercase hex>.h5`` (what ``path_for`` makes from a content key). Temporary files
+  of writers in progress (``.tmp-*.h5``) and anything else a user put in the folder never match.
+  A file that cannot be deleted (permissions, locked by another process on Windows, already
+  removed by a concurrent eviction) is skipped without error.
+* An invalid ``$WSIM_CACHE_MAX_GB`` (not a number, negative, NaN) is reported in one
+  :class:`CacheWarning` line naming the variable and its value, and the default cap is used: a
+  typo in a tuning variable must not stop a simulation, and the default still bounds the disk
+  use. ``wsim cache info`` shows which cap is in force and where it comes from.
 """
 
 from __future__ import annotations
@@ -24,16 +42,19 @@ from __future__ import annotations
 import hashlib
 import importlib.metadata
 import json
+import math
 import os
 import pathlib
 import re
+import stat
 import sys
 import tempfile
+import time
 import warnings
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from datetime import datetime, timezone
-from typing import Any
+from typing import Any, NamedTuple
 
 import h5py
 import numpy as np
@@ -43,6 +64,13 @@ FORMAT_VERSION: int = 1
 
 _KIND_RE = re.compile(r"[A-Za-z0-9_-]+")
 _NAME_RE = re.compile(r"[A-Za-z0-9_.-]+")
+# The only file names eviction and clear_cache may delete: what path_for makes of a content key.
+_ENTRY_RE = re.compile(r"([A-Za-z0-9_-]+)-([0-9a-f]{32})\.h5")
+
+MAX_GB_ENV: str = "WSIM_CACHE_MAX_GB"
+DEFAULT_MAX_GB: float = 10.0
+"""Default size cap of the cache folder in GB (10**9 bytes), used when ``$WSIM_CACHE_MAX_GB``
+is unset, empty or invalid."""
 
 
 class CacheWarning(UserWarning):
@@ -207,6 +235,10 @@ class OperatorCache:
         if reason is not None:
             _warn(path, reason, "recomputing")
             return None
+        try:
+            os.utime(path)  # mtime = time of last use, the signal of least-recently-used eviction
+        except OSError:
+            pass  # a read-only shared cache: the entry just ages as if it were not used
         return out
 
     def store(self, kind: str, key: str, arrays: Mapping[str, np.ndarray],
@@ -250,6 +282,10 @@ class OperatorCache:
                     os.unlink(tmp)
                 except OSError:
                     pass
+        try:
+            enforce_cap(self.directory, keep=path)
+        except OSError:  # e.g. the folder vanished meanwhile: eviction is best effort
+            pass
         return path
 
     def get_or_build(self, kind: str, *, arrays: Mapping[str, np.ndarray],
@@ -266,3 +302,148 @@ class OperatorCache:
         result = {name: np.asarray(a) for name, a in build().items()}
         self.store(kind, key, result, meta)
         return result
+
+
+# --- size: listing, clearing, the cap -----------------------------------------------------------
+
+class CacheEntry(NamedTuple):
+    """One operator file of a cache folder."""
+
+    path: pathlib.Path
+    kind: str
+    key_prefix: str  # the 32 hex digits of the file name (the first half of the content key)
+    size: int  # bytes on disk (st_size)
+    last_used: float  # mtime, seconds since the epoch: when it was last stored or loaded
+
+
+class Cleared(NamedTuple):
+    """What ``clear_cache`` or ``enforce_cap`` did."""
+
+    removed: int  # entries deleted
+    freed: int  # bytes freed
+    skipped: int  # entries that could not be deleted (permissions, in use on Windows...)
+
+
+def _folder(directory: str | os.PathLike[str] | None) -> pathlib.Path:
+    base = default_cache_dir() if directory is None else pathlib.Path(directory)
+    return base.expanduser().absolute()
+
+
+def cache_entries(directory: str | os.PathLike[str] | None = None) -> list[CacheEntry]:
+    """The entries of a cache folder (default: ``default_cache_dir()``), least recently used first.
+
+    That is the order eviction deletes them in. Only regular files directly in the folder named
+    ``<kind>-<32 hex>.h5`` count: temporary files of writers in progress, symlinks, folders and
+    anything else are not entries. A missing or unreadable folder has none.
+    """
+    folder = _folder(directory)
+    out: list[CacheEntry] = []
+    try:
+        with os.scandir(folder) as it:
+            for e in it:
+                m = _ENTRY_RE.fullmatch(e.name)
+                if m is None:
+                    continue
+                try:
+                    st = e.stat(follow_symlinks=False)
+                except OSError:  # deleted meanwhile by another process
+                    continue
+                if stat.S_ISREG(st.st_mode):
+                    out.append(CacheEntry(folder / e.name, m.group(1), m.group(2), st.st_size, st.st_mtime))
+    except OSError:
+        return []
+    out.sort(key=lambda e: (e.last_used, e.path.name))
+    return out
+
+
+def cache_size(directory: str | os.PathLike[str] | None = None) -> int:
+    """Total bytes of the entries of a cache folder (default: ``default_cache_dir()``)."""
+    return sum(e.size for e in cache_entries(directory))
+
+
+def cache_cap(*, warn: bool = True) -> tuple[int | None, str]:
+    """The size cap in bytes (None: no cap) read from ``$WSIM_CACHE_MAX_GB`` now, and its source.
+
+    Unset or empty: :data:`DEFAULT_MAX_GB`. ``0`` or ``inf``: no cap. An invalid value (not a
+    number, negative, NaN) gives the default cap and, with ``warn``, one ``CacheWarning`` line.
+    """
+    raw = os.environ.get(MAX_GB_ENV)
+    default = round(DEFAULT_MAX_GB * 1e9)
+    if raw is None or not raw.strip():
+        return default, "default"
+    try:
+        gb = float(raw)
+    except ValueError:
+        gb = math.nan
+    if math.isnan(gb) or gb < 0:
+        problem = f"{MAX_GB_ENV}={raw!r} is not a size in GB (a number >= 0; 0 or inf: no cap)"
+        if warn:
+            warnings.warn(f"wsim cache: {problem}; using the default {DEFAULT_MAX_GB:g} GB",
+                          CacheWarning, stacklevel=2)
+        return default, f"default; {problem}, ignored"
+    if gb == 0 or math.isinf(gb):
+        return None, f"{MAX_GB_ENV}={raw.strip()}"
+    return round(gb * 1e9), f"{MAX_GB_ENV}={raw.strip()}"
+
+
+def _unlink(path: pathlib.Path) -> bool | None:
+    """True if deleted, None if already gone (another process), False if it cannot be deleted."""
+    try:
+        os.unlink(path)
+    except FileNotFoundError:
+        return None
+    except OSError:
+        return False
+    return True
+
+
+def clear_cache(directory: str | os.PathLike[str] | None = None, *, kind: str | None = None,
+                older_than_days: float | None = None) -> Cleared:
+    """Delete the entries of a cache folder: all, or those of ``kind`` and/or last used more
+    than ``older_than_days`` days ago. Files that are not entries are never touched."""
+    now = time.time()
+    removed = freed = skipped = 0
+    for e in cache_entries(directory):
+        if kind is not None and e.kind != kind:
+            continue
+        if older_than_days is not None and now - e.last_used <= older_than_days * 86400.0:
+            continue
+        done = _unlink(e.path)
+        if done:
+            removed += 1
+            freed += e.size
+        elif done is False:
+            skipped += 1
+    return Cleared(removed, freed, skipped)
+
+
+def enforce_cap(directory: str | os.PathLike[str] | None = None, max_bytes: int | None = None, *,
+                keep: str | os.PathLike[str] | None = None) -> Cleared:
+    """Delete least recently used entries until the folder's total is within ``max_bytes``.
+
+    ``max_bytes=None`` reads the cap with :func:`cache_cap` (which may say: no cap). ``keep``
+    (a path in the folder, e.g. the entry just stored) is never deleted, nor is an entry that
+    cannot be (skipped); so the total may stay above the cap.
+    """
+    if max_bytes is None:
+        max_bytes, _ = cache_cap()
+        if max_bytes is None:
+            return Cleared(0, 0, 0)
+    entries = cache_entries(directory)
+    total = sum(e.size for e in entries)
+    keep_name = pathlib.Path(keep).name if keep is not None else None
+    removed = freed = skipped = 0
+    for e in entries:  # least recently used first
+        if total <= max_bytes:
+            break
+        if e.path.name == keep_name:
+            continue
+        done = _unlink(e.path)
+        if done is False:
+            skipped += 1
+            continue
+        total -= e.size  # deleted, here or by another process
+        if done:
+            removed += 1
+            freed += e.size
+    return Cleared(removed, freed, skipped)

@@ -38,13 +38,22 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:N (default: cuda:0 if present, else cpu)")
     p.add_argument("--up-axis", default=None, choices=["Y", "Z", "y", "z"], help="up axis of the USD stage (Z for Blender)")
     p.add_argument("--mesh", default=None, help="path of a mesh file to use instead of the scene's procedural shape")
-    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    p.add_argument("--mesh-scale", type=float, default=None, metavar="S",
+                   help="use --mesh in its own units times S (default: fitted to the scene's size)")
+    p.add_argument("--start-frame", type=int, default=0, metavar="K", help="USD time code of the first frame (e.g. 1001)")
+    p.add_argument("--no-progress", action="store_true", help="hide every progress bar (frames, BEM operators)")
+    p.add_argument("--verbose", action="store_true", help="show Warp's own output (banner, module loads, CUDA probe)")
     p.add_argument("--checkpoint", default=None, help="checkpoint file to save (default with --checkpoint-every: OUT.ckpt.h5)")
     p.add_argument("--checkpoint-every", type=int, default=0, metavar="N", help="save a checkpoint every N frames (and at the end)")
     p.add_argument("--resume", default=None, metavar="CKPT", help="continue from a checkpoint of this scene up to --frames")
 
 
 def _run(build: Callable[..., object], frames_default: int, name: str, args: argparse.Namespace) -> int:
+    import logging
+
+    from wsim.device import compile_notice
+    from wsim.mesh.surface import MESH_SCALE_ENV
+    from wsim.progress import PROGRESS_ENV
     from wsim.world import World
 
     out = args.out or f"{name}.usdc"
@@ -54,8 +63,22 @@ def _run(build: Callable[..., object], frames_default: int, name: str, args: arg
         raise KeyboardInterrupt  # unwinds through World.run, which saves the frames so far
 
     signal.signal(signal.SIGTERM, on_sigterm)
+    if args.no_progress:  # for the scene's own bars too (wsim.progress)
+        os.environ[PROGRESS_ENV] = "0"
+    if args.mesh_scale is not None:  # read by the scene's wsim.mesh.load_fitted
+        if not args.mesh_scale > 0:
+            print(f"wsim: --mesh-scale = {args.mesh_scale} must be > 0", file=sys.stderr)
+            return 2
+        os.environ[MESH_SCALE_ENV] = repr(args.mesh_scale)
+    log = logging.getLogger("wsim")  # library notes (how a --mesh model was placed) as "wsim: ..." lines
+    if not log.handlers:
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("wsim: %(message)s"))
+        log.addHandler(handler)
+        log.setLevel(logging.INFO)
     try:
-        world = build(mesh=args.mesh, device=args.device)
+        with compile_notice():
+            world = build(mesh=args.mesh, device=args.device)
         if not isinstance(world, World):
             print(f"wsim: scene '{name}': build() must return a wsim.World, got {type(world).__name__}", file=sys.stderr)
             return 2
@@ -74,9 +97,11 @@ def _run(build: Callable[..., object], frames_default: int, name: str, args: arg
                       file=sys.stderr)
                 return 0
             frames -= start
-        summary = world.run(frames, out, up_axis=args.up_axis.upper() if args.up_axis else None,
-                            progress=not args.no_progress, append=args.resume is not None,
-                            checkpoint=checkpoint, checkpoint_every=args.checkpoint_every)
+        with compile_notice():
+            summary = world.run(frames, out, up_axis=args.up_axis.upper() if args.up_axis else None,
+                                progress=not args.no_progress, append=args.resume is not None,
+                                checkpoint=checkpoint, checkpoint_every=args.checkpoint_every,
+                                start_frame=args.start_frame)
         if args.resume is not None:
             how = "appended to" if summary.appended else "written as a new file (no earlier output of this scene) to"
             resumed = f"wsim: resumed at frame {start}; frames {start}..{world.frame} {how} {summary.out}"
@@ -114,7 +139,7 @@ def info() -> str:
     import warp as wp
 
     import wsim
-    from wsim.cache import default_cache_dir
+    from wsim.cache import cache_entries, default_cache_dir
     from wsim.device import available_devices, quiet_warp
 
     quiet_warp()
@@ -125,7 +150,56 @@ def info() -> str:
         f"devices: {', '.join(available_devices())}",
         f"cache: {default_cache_dir()}",
     ]
+    entries = cache_entries()
+    lines.append(f"cache size: {len(entries)} entries, {_mb(sum(e.size for e in entries))} (cap {_cap_text()})")
     return "\n".join(lines)
+
+
+def _mb(nbytes: int) -> str:
+    return f"{nbytes / 1e6:.1f} MB"
+
+
+def _cap_text() -> str:
+    from wsim.cache import cache_cap
+
+    cap, source = cache_cap(warn=False)
+    return f"none ({source})" if cap is None else f"{cap / 1e9:g} GB ({source})"
+
+
+def _cache(args: argparse.Namespace) -> int:
+    """``wsim cache list|info|clear``: the operator cache folder (``wsim.cache``)."""
+    from datetime import datetime
+
+    from wsim.cache import cache_entries, clear_cache, default_cache_dir
+
+    folder = default_cache_dir()
+    if args.cache_command == "clear":
+        if args.older_than is not None and not args.older_than >= 0:
+            print(f"wsim: --older-than = {args.older_than} must be >= 0 (days)", file=sys.stderr)
+            return 2
+        done = clear_cache(folder, kind=args.kind, older_than_days=args.older_than)
+        msg = f"wsim: removed {done.removed} entries from {folder}, freed {_mb(done.freed)} ({done.freed} bytes)"
+        if done.skipped:
+            msg += f"; {done.skipped} could not be deleted"
+        print(msg)
+        return 0
+    entries = cache_entries(folder)
+    total = sum(e.size for e in entries)
+    if args.cache_command == "info":
+        print(f"folder: {folder}" + ("" if folder.is_dir() else " (does not exist yet)"))
+        print(f"entries: {len(entries)}")
+        print(f"total size: {_mb(total)} ({total} bytes)")
+        print(f"cap: {_cap_text()}")
+        return 0
+    # list: least recently used first, i.e. in the order the size cap evicts them
+    width = max([len("kind")] + [len(e.kind) for e in entries])
+    print(f"# {folder}: least recently used first (evicted first)")
+    print(f"{'kind':<{width}}  {'key':<16}  {'size MB':>9}  last used")
+    for e in entries:
+        used = datetime.fromtimestamp(e.last_used).strftime("%Y-%m-%d %H:%M")
+        print(f"{e.kind:<{width}}  {e.key_prefix[:16]}  {e.size / 1e6:>9.1f}  {used}")
+    print(f"total: {len(entries)} entries, {_mb(total)} ({total} bytes)")
+    return 0
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -138,10 +212,35 @@ def main(argv: Sequence[str] | None = None) -> int:
     rec.add_argument("out", help="the killed run's output file (its journal is OUT.journal)")
     rec.add_argument("-o", "--to", default=None, help="write them here instead of OUT")
     sub.add_parser("info", help="print versions, devices and the cache folder")
+    pre = sub.add_parser("preview", help="render a quick-look of a USD output (.png contact sheet, .gif, .mp4); no display or GPU needed")
+    pre.add_argument("usd", help="a USD file written by wsim (any stage with meshes under /World)")
+    pre.add_argument("-o", "--out", default=None, help="output .png (contact sheet), .gif or .mp4 (needs ffmpeg) (default: <usd>.png)")
+    pre.add_argument("--frames", type=int, default=None, metavar="N", help="tiles of a .png (default 6) or most frames of an animation (default all, up to 150)")
+    pre.add_argument("--size", default=None, metavar="WxH", help="output size in pixels (default 1200x600 .png, 640x400 .gif, 960x540 .mp4)")
+    pre.add_argument("--fps", type=float, default=None, help="playback rate of a .gif/.mp4 (default: real time)")
+    cache = sub.add_parser("cache", help="list, size up or clear the operator cache (cap: $WSIM_CACHE_MAX_GB)")
+    cache_sub = cache.add_subparsers(dest="cache_command", required=True)
+    cache_sub.add_parser("list", help="one line per entry, least recently used (next evicted) first, and the total")
+    cache_sub.add_parser("info", help="folder, entry count, total size and the size cap")
+    clear = cache_sub.add_parser("clear", help="delete entries (all, or as filtered) and print the space freed")
+    clear.add_argument("--kind", default=None, help="only entries of this kind (e.g. bem_operators)")
+    clear.add_argument("--older-than", type=float, default=None, metavar="DAYS",
+                       help="only entries last used more than DAYS days ago")
     args = parser.parse_args(argv)
     if args.command == "info":
         print(info())
         return 0
+    if args.command == "preview":
+        from wsim.preview import render
+
+        try:
+            print(render(args.usd, args.out or str(Path(args.usd).with_suffix(".png")), args.frames, args.size, args.fps))
+        except WsimError as exc:
+            print(f"wsim: error: {exc}", file=sys.stderr)
+            return 1
+        return 0
+    if args.command == "cache":
+        return _cache(args)
     if args.command == "recover":
         from wsim.usd import recover
 
@@ -152,8 +251,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 1
         print(f"wsim: {frames} frames recovered into {path}")
         return 0
-    from wsim.device import quiet_warp
+    from wsim.device import VERBOSE_ENV, quiet_warp
 
+    if args.verbose:
+        os.environ[VERBOSE_ENV] = "1"
     quiet_warp()
     build, frames, name = _load_scene(args.scene)
     return _run(build, frames, name, args)
@@ -161,10 +262,13 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def scene_main(build: Callable[..., object], frames: int = DEFAULT_FRAMES, name: str | None = None) -> None:
     """Entry point of a scene script run standalone: ``python scenes/NAME.py [-o OUT] [--frames N] ...``."""
-    from wsim.device import quiet_warp
+    from wsim.device import VERBOSE_ENV, quiet_warp
 
-    quiet_warp()
     scene = name or Path(sys.argv[0]).stem
     parser = argparse.ArgumentParser(prog=scene, description=f"run the wsim scene '{scene}'")
     _add_run_options(parser)
-    raise SystemExit(_run(build, frames, scene, parser.parse_args()))
+    args = parser.parse_args()
+    if args.verbose:
+        os.environ[VERBOSE_ENV] = "1"
+    quiet_warp()
+    raise SystemExit(_run(build, frames, scene, args))

@@ -13,6 +13,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from wsim.errors import InvalidParameter
+from wsim.validate import callback_array
 
 
 class Handle:
@@ -36,22 +37,15 @@ class Handle:
         self.motion = motion
         self.name = name
 
-    def targets(self, t: float, rest: np.ndarray) -> np.ndarray:
-        """(K, 3) target positions at time t, given the (K, 3) rest positions of the handle's vertices."""
-        raw = self.motion(t)
-        try:
-            out = np.asarray(raw, dtype=np.float64)
-        except (TypeError, ValueError):
-            out = np.zeros(0)
-        if out.shape == (4, 4):
-            out = rest @ out[:3, :3].T + out[:3, 3]
-        if out.shape != rest.shape:
-            raise InvalidParameter(
-                f"handle '{self.name}': motion({t:.6g}) must return a 4x4 matrix or a {rest.shape} array, got {raw!r:.60}"
-            )
-        if not np.all(np.isfinite(out)):
-            raise InvalidParameter(f"handle '{self.name}': motion({t:.6g}) returned non-finite values")
-        return out
+    def targets(self, t: float, rest: np.ndarray, what: str | None = None, frame: int | None = None) -> np.ndarray:
+        """(K, 3) target positions at time t, given the (K, 3) rest positions of the handle's vertices.
+
+        ``what`` names the handle in error messages (default ``handle '<name>' motion``; a body
+        passes ``body 'neck': handle 'tip' (handles[0]) motion``) and ``frame`` is the World frame
+        being computed, so a bad motion is reported with the body, the frame and the time."""
+        what = what or f"handle '{self.name}' motion"
+        a = callback_array(self.motion(t), ((4, 4), rest.shape), what, t, frame)
+        return rest @ a[:3, :3].T + a[:3, 3] if a.shape == (4, 4) else a
 
 
 def as_indices(values: Sequence[int] | np.ndarray, what: str) -> np.ndarray:

@@ -2,16 +2,19 @@
 
 Layout of a written stage (default prim ``/World``):
 
-- ``/World/<body>``: Mesh; topology (faceVertexCounts/Indices) written once, ``points`` and
-  ``extent`` time-sampled per frame; ``subdivisionScheme = none`` so DCC tools show the
-  simulated polygons instead of a Catmull-Clark limit surface.
+- ``/World/<body>``: Mesh; topology (faceVertexCounts/Indices) and ``displayColor`` (the body's
+  ``display_color``, else a palette colour) written once; ``points``, ``extent``,
+  ``velocities`` and vertex ``normals`` (area-weighted, for smooth shading) time-sampled per
+  frame; ``subdivisionScheme = none`` so DCC tools show the simulated polygons instead of a
+  Catmull-Clark limit surface.
 - ``/World/colliders/<collider>``: Mesh; a static collider's points are written in stage
   coordinates; a kinematic collider's points are local and its pose a time-sampled
   ``xformOp:transform``; a ground plane is a square quad. Colliders are read through the World's
   ``Surfaces`` (``display_mesh`` and poses), whatever their type.
 
-Stage metadata: ``timeCodesPerSecond = framesPerSecond = fps``, start/end time codes = first and
-last written frames, ``metersPerUnit = 1`` (wsim is SI), ``upAxis`` Y or Z. The simulation is
+Stage metadata: ``timeCodesPerSecond = framesPerSecond = fps``; the time code of World frame k
+is k + ``start_frame`` (0 by default; e.g. 1001 for a film pipeline); start/end time codes =
+first and last written frames, ``metersPerUnit = 1`` (wsim is SI), ``upAxis`` Y or Z. The simulation is
 computed in the World's up axis; exporting to the other axis rotates every point and transform
 by +-90 degrees about X, so a Y-up scene opens upright in Blender when written with Z up.
 
@@ -72,7 +75,9 @@ _JOURNAL_MAGIC = b"WSIMJRN1"
 _RECORD_MAGIC = 0x454D5246  # b"FRME" little-endian: the start of one frame's record
 _FSYNC_SECONDS = 1.0  # the journal reaches the disk (not only the OS) at most this often
 
-_BODY_COLOR = (0.85, 0.45, 0.25)
+# bodies without a ``display_color`` take these in turn: distinct, not too dark, not grey (the colliders)
+_BODY_COLORS = ((0.85, 0.45, 0.25), (0.25, 0.55, 0.85), (0.45, 0.75, 0.35), (0.85, 0.7, 0.25),
+                (0.65, 0.4, 0.8), (0.3, 0.75, 0.75), (0.85, 0.4, 0.55), (0.55, 0.5, 0.35))
 _COLLIDER_COLOR = (0.55, 0.58, 0.62)
 
 
@@ -161,12 +166,12 @@ class _Journal:
     the stage without frames (USD text), then per frame: u32 record magic, u32 CRC-32 of the
     payload, payload = i64 frame + each block (points float32 n x 3, a transform float64 4 x 4)."""
 
-    def __init__(self, path: Path, blocks: list[tuple], base: str) -> None:
+    def __init__(self, path: Path, blocks: list[tuple], base: str, offset: int = 0) -> None:
         self.path = path
         self.blocks = blocks
         self.frames = 0
         self.last: int | None = None
-        header = json.dumps({"blocks": blocks}).encode()
+        header = json.dumps({"blocks": blocks, "start_frame": offset}).encode()
         data = base.encode()
         self._fh = open(path, "wb")
         self._write(_JOURNAL_MAGIC + struct.pack("<I", len(header)) + header + struct.pack("<Q", len(data)) + data)
@@ -210,10 +215,10 @@ def _record_layout(blocks: list) -> list[tuple[str, int, tuple[int, ...], type]]
     return out
 
 
-def read_journal(path: str | os.PathLike) -> tuple[list, str, Iterator[tuple[int, list[np.ndarray]]]]:
-    """(blocks, the stage without frames as USD text, the frames' (frame, arrays) in order) of a
-    journal; a record cut short or failing its checksum (the frame being written when the process
-    died) ends the frames."""
+def read_journal(path: str | os.PathLike) -> tuple[dict, str, Iterator[tuple[int, list[np.ndarray]]]]:
+    """(header: the record's blocks and the start frame, the stage without frames as USD text, the
+    frames' (World frame, arrays) in order) of a journal; a record cut short or failing its
+    checksum (the frame being written when the process died) ends the frames."""
     p = Path(path)
     with open(p, "rb") as fh:
         data = fh.read()
@@ -222,7 +227,8 @@ def read_journal(path: str | os.PathLike) -> tuple[list, str, Iterator[tuple[int
     at = len(_JOURNAL_MAGIC)
     try:
         (n,) = struct.unpack_from("<I", data, at)
-        blocks = json.loads(data[at + 4:at + 4 + n])["blocks"]
+        header = json.loads(data[at + 4:at + 4 + n])
+        blocks = header["blocks"]
         at += 4 + n
         (nb,) = struct.unpack_from("<Q", data, at)
         base = data[at + 8:at + 8 + nb].decode()
@@ -250,7 +256,17 @@ def read_journal(path: str | os.PathLike) -> tuple[list, str, Iterator[tuple[int
             yield int(frame), arrays
             pos += 8 + size
 
-    return blocks, base, records()
+    return header, base, records()
+
+
+def vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(V, 3) float32 unit vertex normals: the sum of the adjacent triangles' area vectors,
+    normalized (zero for a vertex on no triangle)."""
+    p = points.astype(np.float64)
+    a = np.cross(p[faces[:, 1]] - p[faces[:, 0]], p[faces[:, 2]] - p[faces[:, 0]])
+    n = np.stack([np.bincount(faces.ravel(), np.repeat(a[:, d], 3), minlength=len(p)) for d in range(3)], axis=1)
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return (n / np.where(length > 0.0, length, 1.0)).astype(np.float32)
 
 
 def _to_usd_matrix(m: np.ndarray):
@@ -268,11 +284,17 @@ class UsdWriter:
         fps: frames per second (time code = frame index).
         up_axis: the stage's up axis, "Y" or "Z".
         world_up_axis: the up axis the simulation was computed in.
+        start_frame: the time code of the World's frame 0 (an offset added to every frame).
     """
 
-    def __init__(self, path: str | os.PathLike, fps: float, up_axis: str = "Y", world_up_axis: str = "Y") -> None:
+    def __init__(self, path: str | os.PathLike, fps: float, up_axis: str = "Y", world_up_axis: str = "Y",
+                 start_frame: int = 0) -> None:
         self.path = check_output_path(path)
         self.fps = float(fps)
+        if isinstance(start_frame, bool) or not isinstance(start_frame, (int, np.integer)):
+            raise InvalidParameter(f"start_frame must be an integer frame number, got {start_frame!r}")
+        self.offset = int(start_frame)
+        self._faces: dict[str, np.ndarray] = {}
         self.up_axis = check_up_axis(up_axis)
         self._R = _AXIS_ROTATION[(check_up_axis(world_up_axis), self.up_axis)]
         self._A = np.eye(4)
@@ -326,9 +348,13 @@ class UsdWriter:
             mesh.CreateDisplayColorAttr([tuple(color)])
             return mesh
 
-        for body, path in zip(bodies, body_paths):
-            self._meshes[path] = define_mesh(path, body.faces, _BODY_COLOR)
+        for k, (body, path) in enumerate(zip(bodies, body_paths)):
+            color = getattr(body, "display_color", None) or _BODY_COLORS[k % len(_BODY_COLORS)]
+            self._meshes[path] = define_mesh(path, body.faces, tuple(float(c) for c in color))
+            self._meshes[path].CreateNormalsAttr()
+            self._meshes[path].SetNormalsInterpolation(UsdGeom.Tokens.vertex)
             self._bodies[path] = body
+            self._faces[path] = np.asarray(body.faces, dtype=np.int64)
         if colliders:
             UsdGeom.Scope.Define(stage, "/World/colliders")
         for i, (c, path) in enumerate(zip(colliders, collider_paths)):
@@ -350,7 +376,8 @@ class UsdWriter:
         blocks = [("points", path, len(self._bodies[path].points())) for path in self._meshes]
         blocks += [("xform", path) for path in self._kinematic]
         try:
-            self._journal = _Journal(journal_path(self.path), blocks, self._stage.GetRootLayer().ExportToString())
+            self._journal = _Journal(journal_path(self.path), blocks, self._stage.GetRootLayer().ExportToString(),
+                                     self.offset)
         except OSError as exc:
             self._stage = None
             journal_path(self.path).unlink(missing_ok=True)
@@ -408,12 +435,14 @@ class UsdWriter:
         # samples after the checkpoint frame are recomputed: drop them
         attrs = [a for m in meshes.values() for a in (m.GetPointsAttr(), m.GetExtentAttr(), m.GetVelocitiesAttr())]
         attrs += [op.GetAttr() for _, op in kinematic.values()]
+        attrs += [m.GetNormalsAttr() for m in meshes.values()]
         for attr in attrs:
             for code in attr.GetTimeSamples():
-                if code > frame:
+                if code > frame + self.offset:
                     attr.ClearAtTime(code)
-        start = stage.GetStartTimeCode() if stage.HasAuthoredTimeCodeRange() else float(frame)
+        start = stage.GetStartTimeCode() - self.offset if stage.HasAuthoredTimeCodeRange() else float(frame)
         self._stage, self._meshes, self._kinematic = stage, meshes, kinematic
+        self._faces = {path: np.asarray(self._bodies[path].faces, dtype=np.int64) for path in meshes}
         self._first, self._last = int(round(min(start, frame))), frame
         self.appended = True
         return True
@@ -437,10 +466,11 @@ class UsdWriter:
         then each kinematic collider's 4 x 4 transform)."""
         from pxr import Usd, Vt
 
-        code = Usd.TimeCode(float(frame))
+        code = Usd.TimeCode(float(frame + self.offset))
         for (path, mesh), pts in zip(self._meshes.items(), arrays):
             mesh.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(pts), code)
             mesh.GetExtentAttr().Set(Vt.Vec3fArray.FromNumpy(np.array([pts.min(0), pts.max(0)], dtype=np.float32)), code)
+            mesh.GetNormalsAttr().Set(Vt.Vec3fArray.FromNumpy(vertex_normals(pts, self._faces[path])), code)
             prev = self._prev.get(path)
             if prev is not None and prev[0] < frame:  # the frame before: forward difference
                 self._set_velocity(mesh, prev[0], pts, prev[1], frame - prev[0])
@@ -454,7 +484,7 @@ class UsdWriter:
         from pxr import Usd, Vt
 
         v = (later.astype(np.float64) - earlier.astype(np.float64)) * (self.fps / frames)
-        mesh.GetVelocitiesAttr().Set(Vt.Vec3fArray.FromNumpy(v.astype(np.float32)), Usd.TimeCode(float(frame)))
+        mesh.GetVelocitiesAttr().Set(Vt.Vec3fArray.FromNumpy(v.astype(np.float32)), Usd.TimeCode(float(frame + self.offset)))
 
     def close(self) -> Path | None:
         """Write the stage atomically (temp file + rename) and remove the journal; returns the path,
@@ -470,8 +500,8 @@ class UsdWriter:
             elif last is not None and not mesh.GetVelocitiesAttr().GetTimeSamples():
                 self._set_velocity(mesh, last[0], last[1], last[1], 1)  # one frame: at rest
         if self._first is not None:
-            stage.SetStartTimeCode(float(self._first))
-            stage.SetEndTimeCode(float(self._last))
+            stage.SetStartTimeCode(float(self._first + self.offset))
+            stage.SetEndTimeCode(float(self._last + self.offset))
         journal = self._journal
         try:
             _atomic_export(stage.GetRootLayer(), self.path)
@@ -498,7 +528,8 @@ def recover(path: str | os.PathLike, out: str | os.PathLike | None = None) -> tu
     journal = journal_path(target)
     if not journal.is_file():
         raise OutputError(f"'{journal}' does not exist: '{target}' has no interrupted run to recover")
-    blocks, base, records = read_journal(journal)
+    header, base, records = read_journal(journal)
+    blocks = header["blocks"]
     dest = Path(out).expanduser() if out is not None else target
     if out is not None:
         check_output_path(dest)
@@ -507,12 +538,14 @@ def recover(path: str | os.PathLike, out: str | os.PathLike | None = None) -> tu
         raise OutputError(f"'{journal}': the stage it holds is not valid USD")
     stage = Usd.Stage.Open(layer)
     writer = UsdWriter.__new__(UsdWriter)
-    writer.path, writer.fps = dest, float(stage.GetTimeCodesPerSecond())
+    writer.path, writer.fps, writer.offset = dest, float(stage.GetTimeCodesPerSecond()), int(header.get("start_frame", 0))
     writer._stage, writer._journal, writer.appended = stage, None, False
-    writer._first = int(stage.GetStartTimeCode()) if stage.HasAuthoredTimeCodeRange() else None
+    writer._first = int(stage.GetStartTimeCode()) - writer.offset if stage.HasAuthoredTimeCodeRange() else None
     writer._last = None
     writer._bodies, writer._prev, writer._prev2 = {}, {}, {}
     writer._meshes = {b[1]: UsdGeom.Mesh(stage.GetPrimAtPath(b[1])) for b in blocks if b[0] == "points"}
+    writer._faces = {p: np.asarray(m.GetFaceVertexIndicesAttr().Get(), dtype=np.int64).reshape(-1, 3)
+                     for p, m in writer._meshes.items()}
     writer._kinematic = {b[1]: (k, UsdGeom.Xformable(stage.GetPrimAtPath(b[1])).GetOrderedXformOps()[0])
                          for k, b in enumerate(blk for blk in blocks if blk[0] == "xform")}
     frames = 0

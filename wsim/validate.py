@@ -54,3 +54,30 @@ def positive_int(value: object, what: str, minimum: int = 1) -> int:
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < minimum:
         raise InvalidParameter(f"{what} = {value!r} must be an integer >= {minimum}")
     return int(value)
+
+
+def callback_array(value: object, shapes: Sequence[tuple[int, ...]], what: str, t: float,
+                   frame: int | None = None, error: type[WsimError] = InvalidParameter) -> np.ndarray:
+    """What a user's function of time returned (a handle's motion, a load, a driven target), as a
+    finite float64 array of one of ``shapes``; else ``error`` naming ``what`` (the body and the
+    quantity, e.g. ``body 'neck': handle 'tip' (handles[0]) motion``), the time ``t`` [s] and the
+    World ``frame`` being computed when there is one:
+    ``body 'neck': handle 'tip' (handles[0]) motion at t = 1.23333 s is not finite: 3 non-finite
+    values, e.g. row 0 = [nan, nan, nan]; in frame 37``. Reads only the host value it is given."""
+    where = "" if frame is None else f"; in frame {frame}"
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise error(f"{what} at t = {t:.6g} s is not numeric: got {type(value).__name__} {value!r:.60}{where}") from None
+    if a.shape not in [tuple(s) for s in shapes]:
+        expected = " or ".join(str(tuple(s)) for s in shapes)
+        raise error(f"{what} at t = {t:.6g} s has shape {a.shape}; expected {expected}{where}")
+    bad = ~np.isfinite(a)
+    if bad.any():
+        example = ""
+        if a.ndim == 2:
+            i = int(np.argmax(bad.any(axis=1)))
+            example = f", e.g. row {i} = {a[i].tolist()}"
+        raise error(f"{what} at t = {t:.6g} s is not finite: {int(bad.sum())} non-finite values{example}{where}")
+    return a
+

@@ -329,6 +329,7 @@ class World:
         append: bool = False,
         checkpoint: str | Path | None = None,
         checkpoint_every: int = 0,
+        start_frame: int = 0,
     ) -> RunSummary:
         """Simulate ``frames`` frames and write them (plus the starting frame) to ``out`` as USD.
 
@@ -342,12 +343,14 @@ class World:
         ``checkpoint``: a path saved to every ``checkpoint_every`` frames (0: only at the end of the
         run), so a long run can be resumed (``restore``); after a failed step it holds the last
         checkpoint written before the failure.
+        ``start_frame``: the USD time code of frame 0 (e.g. 1001), added to every frame written.
         """
         frames = positive_int(frames, "World.run: frames")
         every = positive_int(checkpoint_every, "World.run: checkpoint_every", 0)
         if every and checkpoint is None:
             raise InvalidParameter("World.run: checkpoint_every needs checkpoint= (the file to save to)")
-        writer = UsdWriter(out, self.fps, up_axis or self.up_axis, self.up_axis) if out is not None else None
+        writer = (UsdWriter(out, self.fps, up_axis or self.up_axis, self.up_axis, start_frame=start_frame)
+                  if out is not None else None)
         if checkpoint is not None:
             from wsim import checkpoint as ckpt
 
@@ -363,7 +366,9 @@ class World:
                 writer.write_frame(self.frame, self.time)
             from tqdm import tqdm
 
-            for _ in tqdm(range(int(frames)), desc="wsim", unit="frame", disable=not progress, leave=False):
+            from wsim.progress import show_progress
+
+            for _ in tqdm(range(int(frames)), desc="wsim", unit="frame", disable=not show_progress(progress), leave=False):
                 self._advance_frame()
                 if on_frame is not None:
                     on_frame(self)

@@ -41,8 +41,8 @@ from wsim.body import Body, VertexImpulses
 from wsim.cache import OperatorCache
 from wsim.colliders import Surfaces
 from wsim.errors import InvalidParameter, SimulationDiverged
-from wsim.materials import ElasticMaterial
-from wsim.validate import as_rotation, as_vec3, finite_number, positive_int
+from wsim.materials import ElasticMaterial, body_material
+from wsim.validate import as_rotation, as_vec3, callback_array, finite_number, positive_int
 
 TractionFn = Callable[[float], Any]
 STAGES = ("history", "loads", "solve", "collision", "constraints", "correction", "frame")
@@ -104,7 +104,8 @@ class BemBody(VertexImpulses, Body):
 
     Args:
         mesh: closed, outward-oriented triangle mesh (``trimesh.Trimesh`` or (vertices, faces)) [m].
-        material: linear-elastic material (``ElasticMaterial(..., incompressible=True)`` for nu = 0.5).
+        material: linear-elastic material (``ElasticMaterial(..., incompressible=True)`` for nu = 0.5),
+            or a dict of its arguments (``dict(mu=1e5, nu=0.45, rho=1000.0)``), checked naming the body.
         dt: time step [s]; the operators (and n_max) are built for it.
         name: USD prim name.
         position: translation applied to the mesh [m].
@@ -129,7 +130,8 @@ class BemBody(VertexImpulses, Body):
             20 % per history window (n_max steps) for 5 windows in a row, with no traction
             applied, is a numerical instability caught early (see ``_check_growth``).
         cache: operator cache (True, False or an ``OperatorCache``).
-        progress: progress bar while the operators are built.
+        progress: progress bar while the operators are built (None: when stderr is a terminal;
+            ``WSIM_PROGRESS=0``, set by ``wsim run --no-progress``, hides it; ``wsim.progress``).
         profile: synchronize the device after each stage so ``timings`` splits GPU time by stage.
         constraint_tol: the constraint solve stops when a Gauss-Seidel sweep moves no point by more
             than this [m] (default 1e-5 of the body's largest radius ``r_max``).
@@ -141,13 +143,17 @@ class BemBody(VertexImpulses, Body):
             ``r_max``); the rest are free this step. The prediction already carries the step's motion.
         friction: the body's Coulomb coefficient; a contact uses the larger of it and the collider's
             (the BEM authors' "maximum" rule). None: the collider's.
+        merge_vertices: merge the mesh's vertices at the same position first (a file whose faces
+            each have their own corners, e.g. the BEM authors' ``*_discontinuous.obj``); vertex ids
+            (``fix``, joints) and ``faces`` then refer to the merged vertices. The mesh must be one
+            closed piece: make one body per piece.
         **quadrature: quadrature knobs of ``build_operators``.
     """
 
     def __init__(
         self,
         mesh: Any,
-        material: ElasticMaterial,
+        material: ElasticMaterial | dict[str, Any],
         dt: float,
         *,
         name: str = "bem_body",
@@ -167,17 +173,17 @@ class BemBody(VertexImpulses, Body):
         divergence_limit: float | None = None,
         growth_check: bool = True,
         cache: bool | OperatorCache = True,
-        progress: bool = False,
+        progress: bool | None = None,
         profile: bool = False,
         constraint_tol: float | None = None,
         constraint_iterations: int = 200,
         contact_margin: float | None = None,
         friction: float | None = None,
+        merge_vertices: bool = False,
         **quadrature: Any,
     ) -> None:
         super().__init__(name, velocity, angular_velocity)
-        if not isinstance(material, ElasticMaterial):
-            raise InvalidParameter(f"body '{name}': material must be a wsim.ElasticMaterial")
+        material = body_material(material, name)  # a dict of ElasticMaterial's arguments is checked naming the body
         dt = finite_number(dt, f"body '{name}': dt [s]")
         if dt <= 0.0:
             raise InvalidParameter(f"body '{name}': dt = {dt} s must be > 0")
@@ -188,9 +194,10 @@ class BemBody(VertexImpulses, Body):
             raise InvalidParameter(f"body '{name}': precision = {precision!r} must be one of {', '.join(PRECISIONS)}")
         if matvec not in stepper.BACKENDS:
             raise InvalidParameter(f"body '{name}': matvec = {matvec!r} must be one of {', '.join(stepper.BACKENDS)}")
-        vertices, faces = wmesh.surface_arrays(mesh, f"body '{name}'")
-        # validates (closed, oriented, non-degenerate) before anything is built
-        surface = prepare_surface(vertices, faces, double_nodes=double_nodes, name=f"body '{name}'")
+        vertices, faces = wmesh.surface_arrays(mesh, f"body '{name}'", merge_vertices=merge_vertices)
+        # validates (closed, one piece, oriented, non-degenerate) before anything is built
+        surface = prepare_surface(vertices, faces, double_nodes=double_nodes, name=f"body '{name}'",
+                                  fixes=("merge_vertices",))
         props = mass_properties(surface.nodes, surface.faces, material.rho)
         R0 = as_rotation(rotation, f"body '{name}': rotation")
         if operators is not None:
@@ -365,21 +372,21 @@ class BemBody(VertexImpulses, Body):
         return (st.coupling_force @ st.frame.R) / self._vertex_area[:, None]
 
     def _tractions(self, t: float) -> np.ndarray:
+        """The loads' tractions at a step's end time t, per node (frame axes); each load's value is
+        checked on the host (shape, finite), naming the body, the load, the time and the frame."""
         n = self._surface.n_nodes
         p = np.zeros((n, 3))
         n_vertices = len(self._node_count)
+        shapes = ((n_vertices, 3),) if n == n_vertices else ((n_vertices, 3), (n, 3))
+        k = 0  # index of the user's loads, in add_traction order
         for fn in self._loads:
-            value = np.asarray(fn(t), dtype=np.float64)
-            if value.shape == (n_vertices, 3):
-                p += value[self._surface.vertex]
-            elif value.shape == (n, 3):
-                p += value
+            if fn == self._coupling_tractions:
+                what = f"body '{self.name}': the push of other bodies (add_vertex_impulses) as tractions [Pa]"
             else:
-                expected = f"({n_vertices}, 3)" + ("" if n == n_vertices else f" per vertex or ({n}, 3) per node")
-                raise InvalidParameter(
-                    f"body '{self.name}': a traction load returned shape {value.shape} at t = {t:g} s; expected {expected}")
-            if not np.all(np.isfinite(value)):
-                raise InvalidParameter(f"body '{self.name}': a traction load returned non-finite values at t = {t:g} s")
+                what = f"body '{self.name}': traction load {k} (add_traction fn(t), tractions [Pa])"
+                k += 1
+            value = callback_array(fn(t), shapes, what, t, self._frame_of(t))
+            p += value[self._surface.vertex] if value.shape == (n_vertices, 3) else value
         return p.reshape(-1)
 
     # -- World interface --------------------------------------------------------------------
@@ -538,14 +545,12 @@ class BemBody(VertexImpulses, Body):
         p_c = p_c.reshape(-1)
         return u, a_ext + ops.A @ p_c, alpha_ext + ops.C @ p_c, p_c
 
-    def _check_targets(self, value: Any, k: int, t: float) -> np.ndarray:
-        a = np.asarray(value, dtype=np.float64)
-        if a.shape != (k, 3):
-            raise InvalidParameter(f"body '{self.name}': fixed-point targets at t = {t:g} s have shape {a.shape}; "
-                                   f"expected ({k}, 3) world positions")
-        if not np.all(np.isfinite(a)):
-            raise InvalidParameter(f"body '{self.name}': fixed-point targets at t = {t:g} s are not finite")
-        return a
+    def _check_targets(self, value: Any, k: int, t: float, handle: int | None = None) -> np.ndarray:
+        """Targets given to ``fix`` (``handle`` None) or returned by a driven target ``fn(t)`` at a
+        step's end time t, checked on the host value (names the body, the handle and the frame)."""
+        what = f"body '{self.name}': fixed-point targets (world positions)" if handle is None else \
+            f"body '{self.name}': fix() handle {handle} target fn(t) (world positions)"
+        return callback_array(value, ((k, 3),), what, t, None if handle is None else self._frame_of(t))
 
     def _constraint_points(self, V: np.ndarray, X_prev: np.ndarray, t: float) -> tuple[wc.PointRefs, wc.PointSet]:
         """The points and constraints of this step: fixed and driven nodes, nodes in contact, then
@@ -553,8 +558,8 @@ class BemBody(VertexImpulses, Body):
         points = wc.PointSet()
         nodes = []
         held = np.zeros(len(V), dtype=bool)
-        for ids, nd, target, row in self._fixed.values():
-            tgt = self._check_targets(target(t), len(ids), t) if callable(target) else target
+        for handle, (ids, nd, target, row) in self._fixed.items():
+            tgt = self._check_targets(target(t), len(ids), t, handle) if callable(target) else target
             points.add(wc.FIXED, np.zeros((len(nd), 3)), np.zeros(len(nd)), tgt[row], 0.0)
             nodes.append(nd)
             held[nd] = True

@@ -156,7 +156,7 @@ def build_operators(
     device: Any = None,
     cache: bool | OperatorCache = True,
     memory_limit: int | None = None,
-    progress: bool = False,
+    progress: bool | None = None,
     **quadrature: Any,
 ) -> BemOperators:
     """Build (or load from the cache) the operator set of one BEM body.
@@ -173,7 +173,8 @@ def build_operators(
         device: Warp device for the assembly (default: CUDA if present).
         cache: True (default folder), False, or an ``OperatorCache``.
         memory_limit: device bytes the row blocks may use (default 60 % of free GPU memory, 2 GiB on CPU).
-        progress: show a progress bar over (row block, sample).
+        progress: a progress bar over (row block, sample): ``wsim.progress.show_progress`` (None:
+            when stderr is a terminal; ``WSIM_PROGRESS=0`` hides it whatever is asked).
         **quadrature: :class:`~wsim.bem.quadrature.Quadrature` knobs.
     """
     t_start = time.perf_counter()
@@ -227,9 +228,11 @@ def build_operators(
 
 
 def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: str, eps: float, precision: str,
-           n_max: int, r_max: float, quad: Quadrature, device: Any, memory_limit: int | None, progress: bool,
+           n_max: int, r_max: float, quad: Quadrature, device: Any, memory_limit: int | None, progress: bool | None,
            timings: dict[str, float]) -> BemOperators:
     from tqdm.auto import tqdm
+
+    from wsim.progress import show_progress
 
     t0 = time.perf_counter()
     assembler = LaplaceAssembler(surface, material, quad, device)
@@ -254,7 +257,7 @@ def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: st
     G0_host = wp.empty((cols, cols), dtype=wp.float64, device="cpu", pinned=pinned)
     timings["setup"] = time.perf_counter() - t0
     t_assembly = t_transfer = 0.0
-    bar = tqdm(total=len(blocks) * len(s_l), desc="BEM operators", unit="sample", disable=not progress)
+    bar = tqdm(total=len(blocks) * len(s_l), desc="BEM operators", unit="sample", disable=not show_progress(progress))
     with wp.ScopedDevice(dev):
         block = assembler.block(rows)
         acc_H = wp.zeros((n_max + 1, 3 * rows, cols), dtype=wp.float64)

@@ -15,6 +15,7 @@ yields c plus the principal value together).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
@@ -85,8 +86,9 @@ def _sectors(faces: np.ndarray, normals: np.ndarray, cos_limit: float) -> np.nda
     return np.array([find(c) for c in range(3 * m)]).reshape(m, 3)
 
 
-def prepare_surface(vertices, faces, *, double_nodes: float | None = None, name: str = "mesh") -> BemSurface:
-    """Validate a closed mesh (``InvalidMesh`` before any assembly) and build its BEM surface.
+def prepare_surface(vertices, faces, *, double_nodes: float | None = None, name: str = "mesh",
+                    fixes: Sequence[str] = ()) -> BemSurface:
+    """Validate a closed mesh of one piece (``InvalidMesh`` before any assembly) and build its BEM surface.
 
     Args:
         vertices, faces: the triangle mesh (closed, consistently outward-oriented, no degenerate faces).
@@ -94,8 +96,10 @@ def prepare_surface(vertices, faces, *, double_nodes: float | None = None, name:
             faces' normals differ by more than it carry a traction discontinuity, and their vertices
             get one node per smooth sector.
         name: mesh name for error messages.
+        fixes: the caller's keyword arguments named in the hints of ``check_surface`` (``BemBody``:
+            ``("merge_vertices",)``).
     """
-    wmesh.check_surface(vertices, faces, name, closed=True)
+    wmesh.check_surface(vertices, faces, name, closed=True, one_piece=True, fixes=fixes)
     v, f = wmesh.surface_arrays((vertices, faces), name)
     v = v.astype(np.float64)
     a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]

@@ -61,9 +61,9 @@ from wsim.kernels import eol_plastic as kp
 from wsim.kernels import eol_step as ks
 from wsim.kernels.eol_grid import grid_struct
 from wsim.launch import Launcher
-from wsim.materials import ElasticMaterial
+from wsim.materials import ElasticMaterial, body_material
 from wsim.rigid import advance_pose, cross_matrix, rigid_fit
-from wsim.validate import as_rotation, as_vec3, finite_number, positive_int
+from wsim.validate import as_rotation, as_vec3, callback_array, finite_number, positive_int
 
 if TYPE_CHECKING:
     from wsim.colliders import Collider
@@ -150,8 +150,10 @@ class EolBody(VertexImpulses, Body):
     """An Eulerian-on-Lagrangian solid.
 
     Args:
-        mesh: closed, outward-oriented surface (trimesh or (vertices, faces)) in world coordinates [m].
-        material: compressible ``ElasticMaterial`` (elastic forces are explicit).
+        mesh: closed, outward-oriented surface of one piece (trimesh or (vertices, faces)) in world
+            coordinates [m]; make one body per piece.
+        material: compressible ``ElasticMaterial`` (elastic forces are explicit), or a dict of its
+            arguments (``dict(E=5e4, nu=0.3, rho=500.0)``), checked naming the body.
         resolution: grid cells along the longest side of the body's bounding box (>= 4).
         lagrangian: "rigid" (6 DOF), "affine" (12 DOF) or "eulerian" (no Lagrangian motion).
         advection: "semi-lagrangian" (first order, the paper's) or "bfecc" (second order on smooth
@@ -224,6 +226,8 @@ class EolBody(VertexImpulses, Body):
         friction: Coulomb coefficient against other bodies (the larger of the two bodies' values;
             None: ``wsim.contact.DEFAULT_FRICTION`` unless the other gives one). Contact with the
             World's colliders is frictionless, as in the paper.
+        merge_vertices: merge the mesh's vertices at the same position first (a file whose faces
+            each have their own corners); ``faces`` and vertex indices then refer to the merged ones.
 
     Loads: ``add_traction`` (surface tractions [Pa], world axes), ``add_body_force`` (accelerations
     [m/s^2]); ``load_impulse`` is the momentum they delivered. A body that starts more than half a
@@ -235,7 +239,7 @@ class EolBody(VertexImpulses, Body):
     def __init__(
         self,
         mesh: Any,
-        material: ElasticMaterial,
+        material: ElasticMaterial | dict[str, Any],
         *,
         resolution: int = 32,
         lagrangian: str = "rigid",
@@ -264,6 +268,7 @@ class EolBody(VertexImpulses, Body):
         coriolis: str = "midpoint",
         friction: float | None = None,
         hourglass: float = 0.1,
+        merge_vertices: bool = False,
     ) -> None:
         super().__init__(name, velocity, angular_velocity)
         p = f"body '{name}'"
@@ -281,10 +286,10 @@ class EolBody(VertexImpulses, Body):
         self._tractions: list[Callable[[float], Any]] = []
         self._point_forces: list[Callable[[float, np.ndarray], Any]] = []
         self._accelerations: list[Callable[[float], Any]] = []
-        if not isinstance(material, ElasticMaterial):
-            raise InvalidParameter(f"{p}: material must be a wsim.ElasticMaterial")
+        material = body_material(material, name)  # a dict of ElasticMaterial's arguments is checked naming the body
         if material.incompressible:
-            raise InvalidParameter(f"{p}: EoL elasticity is explicit and needs a compressible material (nu < 0.5)")
+            raise InvalidParameter(f"{p}: material '{material.name}' is incompressible; EoL elasticity is explicit and "
+                                   "needs a compressible material (nu < 0.5)")
         if lagrangian not in LAGRANGIAN:
             raise InvalidParameter(f"{p}: lagrangian = {lagrangian!r} must be one of {', '.join(LAGRANGIAN)}")
         check_scheme(advection, f"{p}: advection")
@@ -322,8 +327,8 @@ class EolBody(VertexImpulses, Body):
         floor = finite_number(mass_floor, f"{p}: mass_floor")
         if self.damping < 0.0 or not 0.0 <= floor <= 1.0:
             raise InvalidParameter(f"{p}: damping must be >= 0 and mass_floor in [0, 1]")
-        vertices, faces = wmesh.surface_arrays(mesh, p)
-        wmesh.check_surface(vertices, faces, name=p, closed=True)
+        vertices, faces = wmesh.surface_arrays(mesh, p, merge_vertices=merge_vertices)
+        wmesh.check_surface(vertices, faces, name=p, closed=True, one_piece=True, fixes=("merge_vertices",))
         self.grid = make_grid(vertices, resolution, padding)  # validates the resolution; grows with the body (_regrid)
         self.resolution = int(resolution)
         self.padding = padding
@@ -613,16 +618,11 @@ class EolBody(VertexImpulses, Body):
         """(V, 3) outward unit normals of the deformed surface (area-weighted, world axes)."""
         return wmesh.vertex_normals(self.points(), self._faces)
 
-    def _load_value(self, value: Any, shape: tuple[int, ...], what: str, t: float) -> np.ndarray:
-        try:
-            a = np.asarray(value, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise InvalidParameter(f"body '{self.name}': {what} at t = {t:.6g} s is not numeric") from None
-        if a.shape != shape:
-            raise InvalidParameter(f"body '{self.name}': {what} at t = {t:.6g} s has shape {a.shape}; expected {shape}")
-        if not np.all(np.isfinite(a)):
-            raise InvalidParameter(f"body '{self.name}': {what} at t = {t:.6g} s is not finite")
-        return a
+    def _load_value(self, value: Any, shape: tuple[int, ...], what: str, t: float, in_step: bool = True) -> np.ndarray:
+        """What a user's function returned at t (a step's start time when ``in_step``), checked on the
+        host: shape and finite, else InvalidParameter naming the body, ``what``, t and the frame."""
+        return callback_array(value, (shape,), f"body '{self.name}': {what}", t,
+                              self._frame_of(t, start=True) if in_step else None)
 
     def _body_acceleration(self, t: float) -> np.ndarray:
         """The uniform body-force accelerations at t [m/s^2] (world)."""
@@ -845,7 +845,7 @@ class EolBody(VertexImpulses, Body):
         mass = self._mass.numpy()
         has = mass > 0.0
         x = self.grid.node_positions() @ st.F.T + st.T
-        u = self._load_value(self._velocity_field(x[has]), (int(has.sum()), 3), "velocity_field [m/s]", 0.0)
+        u = self._load_value(self._velocity_field(x[has]), (int(has.sum()), 3), "velocity_field [m/s]", 0.0, in_step=False)
         u = u + self.initial_velocity + np.cross(self.initial_angular_velocity, x[has] - st.T)
         w = np.zeros((self.grid.n_nodes, 3))
         w[has] = u @ self._axes()  # world -> velocity axes (rigid: body axes)

@@ -1,10 +1,11 @@
 """Surface meshes for wsim, one module per job:
 
-* :mod:`~wsim.mesh.surface` -- array input (``surface_arrays``), mesh files (``load``,
-  ``load_fitted``) and measures (``signed_volume``, ``face_areas``, ``vertex_normals``,
-  ``vertex_areas``);
-* :mod:`~wsim.mesh.validate` -- ``check_surface``: every defect raised with an example index;
-* :mod:`~wsim.mesh.topology` -- ``edges``, ``hinges``, ``has_boundary``;
+* :mod:`~wsim.mesh.surface` -- array input (``surface_arrays``, with ``merge_vertices``), mesh files
+  (``load``, ``load_fitted``), measures (``signed_volume``, ``face_areas``, ``vertex_normals``,
+  ``vertex_areas``) and vertices at the same position (``merge_coincident_vertices``);
+* :mod:`~wsim.mesh.validate` -- ``check_surface``: every defect raised with an example index (and,
+  for a body, several pieces; split vertices get a hint to merge them);
+* :mod:`~wsim.mesh.topology` -- ``edges``, ``hinges``, ``has_boundary``, ``pieces``;
 * :mod:`~wsim.mesh.shapes` -- procedural shapes for scenes, tools and tests;
 * :mod:`~wsim.mesh.inside` -- the one point-in-mesh test (``inside_surface``, ``SurfaceQuery``)
   and the winding-number field (``winding_number``);
@@ -29,13 +30,14 @@ from wsim.mesh.surface import (
     face_areas,
     load,
     load_fitted,
+    merge_coincident_vertices,
     signed_volume,
     surface_arrays,
     vertex_areas,
     vertex_normals,
 )
 from wsim.mesh.tets import tetrahedralize
-from wsim.mesh.topology import edges, has_boundary, hinges
+from wsim.mesh.topology import edges, has_boundary, hinges, pieces
 from wsim.mesh.validate import check_surface
 
 __all__ = [
@@ -50,6 +52,8 @@ __all__ = [
     "edges",
     "hinges",
     "has_boundary",
+    "pieces",
+    "merge_coincident_vertices",
     "bumpy_sphere",
     "fish",
     "neck_body",

@@ -77,13 +77,17 @@ def _faces_array(raw: Any, n_vertices: int, name: str) -> np.ndarray:
     return np.ascontiguousarray(f, dtype=np.int32)
 
 
-def surface_arrays(mesh: trimesh.Trimesh | tuple[Any, Any], name: str = "mesh") -> tuple[np.ndarray, np.ndarray]:
+def surface_arrays(mesh: trimesh.Trimesh | tuple[Any, Any], name: str = "mesh", *,
+                   merge_vertices: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Convert a surface to wsim's array convention.
 
     Args:
         mesh: a ``trimesh.Trimesh`` or a ``(vertices, faces)`` pair of array-likes; vertex
             coordinates in metres.
         name: the object's name, used at the start of error messages (see :mod:`wsim.mesh`).
+        merge_vertices: merge vertices at the same position first (``merge_coincident_vertices``:
+            a mesh whose faces each have their own corners becomes one surface). Vertex indices
+            then refer to the merged vertices: the first of each coincident set, in their order.
 
     Returns:
         ``(V, F)``: ``V`` a C-contiguous float64 (N, 3) copy of the vertices [m], ``F`` int32
@@ -104,7 +108,49 @@ def surface_arrays(mesh: trimesh.Trimesh | tuple[Any, Any], name: str = "mesh") 
         )
     v = _vertices_array(raw_v, name)
     f = _faces_array(raw_f, v.shape[0], name)
+    if merge_vertices and f.shape[0]:
+        v, f, _ = merge_coincident_vertices(v, f)
     return v, f
+
+
+# Vertices closer than this fraction of the bounding-box diagonal are at "the same position".
+_COINCIDENT_FRACTION = 1e-9
+
+
+def coincident_vertices(vertices: np.ndarray) -> np.ndarray:
+    """(N,) for each vertex the index of the first vertex at the same position (itself if none is
+    earlier): closer than 1e-9 times the bounding-box diagonal, chained."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    v = np.asarray(vertices, dtype=np.float64)
+    n = v.shape[0]
+    index = np.arange(n)
+    if n < 2:
+        return index
+    tol = _COINCIDENT_FRACTION * float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))
+    pairs = cKDTree(v).query_pairs(tol, output_type="ndarray")
+    if not len(pairs):
+        return index
+    graph = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    first = np.full(int(label.max()) + 1, n)
+    np.minimum.at(first, label, index)
+    return first[label]
+
+
+def merge_coincident_vertices(vertices: Any, faces: Any) -> tuple[np.ndarray, np.ndarray, int]:
+    """Merge vertices at the same position (``coincident_vertices``), like trimesh's
+    ``mesh.merge_vertices()``: returns ``(V, F, n_merged)`` with the first vertex of each coincident
+    set kept (in the original order), the faces renumbered onto them (int32) and the number of
+    vertices removed."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces)
+    rep = coincident_vertices(v)
+    keep = rep == np.arange(v.shape[0])
+    new_index = np.cumsum(keep) - 1
+    return v[keep], new_index[rep][f].astype(np.int32).reshape(-1, 3), int((~keep).sum())
 
 
 def signed_volume(vertices: Any, faces: Any) -> float:
@@ -161,10 +207,33 @@ def load(path: str | os.PathLike, name: str | None = None) -> trimesh.Trimesh:
     return m
 
 
-def load_fitted(path: str | os.PathLike, size: float) -> trimesh.Trimesh:
-    """Load a mesh file, centre its bounding box at the origin and scale its longest side to ``size`` [m]
-    (how scenes place a user's ``--mesh`` model)."""
+#: ``wsim run --mesh-scale S`` sets this: scenes then use a ``--mesh`` model in its own units times S
+#: instead of fitting it to their size (``load_fitted``)
+MESH_SCALE_ENV = "WSIM_MESH_SCALE"
+
+
+def load_fitted(path: str | os.PathLike, size: float, scale: float | None = None) -> trimesh.Trimesh:
+    """Load a mesh file and centre its bounding box at the origin (how scenes place a user's
+    ``--mesh`` model): its longest side scaled to ``size`` [m], or, with ``scale`` (or
+    ``$WSIM_MESH_SCALE``, set by ``wsim run --mesh-scale``), the file's own units times ``scale``.
+    Says which on the ``wsim`` logger (the CLI prints it)."""
+    import logging
+
     m = load(path)
     m.apply_translation(-m.bounding_box.centroid)
-    m.apply_scale(_positive(size, "fitted mesh size") / max(m.extents))
+    env = os.environ.get(MESH_SCALE_ENV)
+    if scale is None and env:
+        try:
+            scale = float(env)
+        except ValueError:
+            raise InvalidMesh(f"mesh '{Path(path).name}': ${MESH_SCALE_ENV} = {env!r} is not a number") from None
+    if scale is not None:
+        k = _positive(scale, f"mesh '{Path(path).name}': scale")
+        how = f"its own units x {k:g}"
+    else:
+        k = _positive(size, "fitted mesh size") / max(m.extents)
+        how = f"fitted: longest side {size:g} m (x {k:.4g}; --mesh-scale S keeps its own units x S)"
+    m.apply_scale(k)
+    logging.getLogger("wsim").info("mesh '%s': %s, %s m across", Path(path).name, how,
+                                   " x ".join(f"{e:.3g}" for e in m.extents))
     return m

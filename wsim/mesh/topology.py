@@ -1,5 +1,7 @@
-"""Topology of triangle lists: unique edges, bending hinges (pairs of faces sharing an edge) and
-whether a surface has a boundary. Only the face indices are read, never the vertex positions."""
+"""Topology of triangle lists: unique edges, bending hinges (pairs of faces sharing an edge),
+whether a surface has a boundary and its connected pieces. Only the face indices are read, never the
+vertex positions (so vertices split at the same position count as separate: see
+``wsim.mesh.surface.merge_coincident_vertices``)."""
 
 from __future__ import annotations
 
@@ -84,3 +86,29 @@ def hinges(faces: Any) -> np.ndarray:
     ok = (first // 3 != second // 3) & (src[first] != dst[first])
     first, second = first[ok], second[ok]
     return np.stack([wing[first], wing[second], src[first], dst[first]], axis=1).astype(np.int32)
+
+
+def pieces(faces: Any) -> tuple[int, np.ndarray]:
+    """Connected pieces of a triangle list: faces that share a vertex index, directly or through
+    other faces, are one piece.
+
+    Returns ``(count, label)``: the number of pieces and each face's piece, numbered 0, 1, ... in
+    the order of each piece's first face; ``(0, empty)`` without faces.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    f = _faces_only(faces)
+    m = f.shape[0]
+    if m == 0:
+        return 0, np.zeros(0, dtype=np.int64)
+    n = int(f.max()) + 1
+    # bipartite graph: face i (node i) -- its three vertices (nodes m + v)
+    rows = np.repeat(np.arange(m, dtype=np.int64), 3)
+    graph = coo_matrix((np.ones(3 * m, dtype=np.int8), (rows, m + f.reshape(-1))), shape=(m + n, m + n))
+    _, label = connected_components(graph, directed=False)
+    _, first, inverse = np.unique(label[:m], return_index=True, return_inverse=True)
+    rank = np.empty(first.size, dtype=np.int64)
+    rank[np.argsort(first)] = np.arange(first.size)
+    return int(first.size), rank[inverse.reshape(-1)]
+

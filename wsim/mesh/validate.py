@@ -1,7 +1,9 @@
 """Validation of triangle surfaces: ``check_surface`` raises :class:`wsim.errors.InvalidMesh`
 naming the first defect (shapes, non-finite coordinates, degenerate, duplicate or unreferenced
-elements and, for closed surfaces, boundary / non-manifold edges, flipped faces, inward normals),
-with an example index, so a scene script can be fixed from the message alone.
+elements and, for closed surfaces, boundary / non-manifold edges, flipped faces, inward normals;
+for a body, several separate pieces), with an example index, so a scene script can be fixed from
+the message alone. When vertices split at the same position are the cause (a file whose faces
+each have their own corners), the message says so and how to merge them.
 
 Plain vectorized numpy (no Python loop over faces or vertices): validating a 100k-face surface
 takes a fraction of a second.
@@ -9,14 +11,14 @@ takes a fraction of a second.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from wsim.errors import InvalidMesh
 from wsim.mesh._common import _corners, _fmt_vec, _prefix
-from wsim.mesh.surface import signed_volume, surface_arrays
-from wsim.mesh.topology import _edge_keys
+from wsim.mesh.surface import merge_coincident_vertices, signed_volume, surface_arrays
+from wsim.mesh.topology import _edge_keys, pieces
 
 # Faces whose area is at most this fraction of the squared bounding-box diagonal count as degenerate.
 _DEGENERATE_AREA_FRACTION = 1e-12
@@ -59,7 +61,51 @@ def _check_duplicates(f: np.ndarray, p: str) -> None:
         )
 
 
-def _check_closed(v: np.ndarray, f: np.ndarray, p: str) -> None:
+def _merge_hint(fixes: Sequence[str]) -> str:
+    """How to merge vertices at the same position: the caller's keyword if it has one."""
+    how = "merge them (trimesh: mesh.merge_vertices())"
+    return f"pass merge_vertices=True or {how}" if "merge_vertices" in fixes else how
+
+
+def _duplicates_note(v: np.ndarray, f: np.ndarray, merged_is_fine: Callable[[np.ndarray], bool], result: str,
+                     fixes: Sequence[str]) -> str:
+    """``; 28 of its 36 vertices are duplicates at the same position (merged, <result>): pass
+    merge_vertices=True or ...`` when merging the vertices at the same position cures the defect
+    (``merged_is_fine(merged faces)``), else ''. Only called on the error path (a k-d tree)."""
+    _, mf, n_merged = merge_coincident_vertices(v, f)
+    if n_merged == 0 or not merged_is_fine(mf):
+        return ""
+    return (f"; {n_merged} of its {v.shape[0]} vertices are duplicates at the same position (merged, {result}): "
+            f"{_merge_hint(fixes)}")
+
+
+def _edge_uses(f: np.ndarray, n: int) -> np.ndarray:
+    """How many faces use each undirected edge (one count per distinct edge)."""
+    keys = _edge_keys(f.reshape(-1), f[:, [1, 2, 0]].reshape(-1), n)
+    return np.unique(keys, return_counts=True)[1]
+
+
+def _check_pieces(v: np.ndarray, f: np.ndarray, p: str, closed: bool, fixes: Sequence[str]) -> None:
+    """One connected piece, or InvalidMesh with the count and how to split (or allow) them; when the
+    pieces are only vertices split at the same position, how to merge them instead."""
+    count, _ = pieces(f)
+    if count <= 1:
+        return
+
+    def whole(mf: np.ndarray) -> bool:  # one manifold piece (closed if it must be) once merged
+        uses = _edge_uses(mf, v.shape[0])
+        return pieces(mf)[0] == 1 and uses.max() <= 2 and (not closed or uses.min() == 2)
+
+    note = _duplicates_note(v, f, whole, "it is one piece", fixes)
+    if note:
+        raise InvalidMesh(f"{p}: the mesh has {count} separate pieces{note}")
+    allow = " or pass allow_pieces=True to simulate them as one body" if "allow_pieces" in fixes else ""
+    raise InvalidMesh(
+        f"{p}: the mesh has {count} separate pieces; make one body per piece (trimesh: mesh.split()){allow}"
+    )
+
+
+def _check_closed(v: np.ndarray, f: np.ndarray, p: str, fixes: Sequence[str] = ()) -> None:
     """Watertight, manifold, consistently oriented and outward (positive signed volume)."""
     n = v.shape[0]
     src = f.reshape(-1).astype(np.int64)
@@ -75,6 +121,7 @@ def _check_closed(v: np.ndarray, f: np.ndarray, p: str) -> None:
         problems.append(
             f"not watertight: {int(boundary.sum())} boundary edges used by only one face "
             f"(e.g. vertices {k // n}-{k % n})"
+            + _duplicates_note(v, f, lambda mf: bool(np.all(_edge_uses(mf, n) == 2)), "it is watertight", fixes)
         )
     nonmanifold = counts > 2
     if nonmanifold.any():
@@ -118,7 +165,8 @@ def _check_closed(v: np.ndarray, f: np.ndarray, p: str) -> None:
 
 
 
-def check_surface(vertices: Any, faces: Any, name: str = "mesh", *, closed: bool = True) -> None:
+def check_surface(vertices: Any, faces: Any, name: str = "mesh", *, closed: bool = True, one_piece: bool = False,
+                  fixes: Sequence[str] = ()) -> None:
     """Validate a triangle surface; raise :class:`InvalidMesh` naming the first problem found.
 
     Always checked: array shapes and finite coordinates (as :func:`surface_arrays`), degenerate
@@ -129,6 +177,15 @@ def check_surface(vertices: Any, faces: Any, name: str = "mesh", *, closed: bool
     by exactly two faces (boundary and non-manifold edges are reported separately); orientation is
     consistent (each directed edge appears at most once); and the signed volume is positive
     (outward normals).
+
+    With ``one_piece=True`` (a body): the faces form one connected piece (``topology.pieces``);
+    the message gives the count and says to make one body per piece.
+
+    Where vertices split at the same position are the cause (not watertight, or many pieces, but
+    watertight, or one manifold piece, once they are merged), the message says so and how to merge
+    them (only on this error path is a k-d tree of the vertices built).
+    ``fixes``: the caller's keyword arguments that cure a defect, named in the hints:
+    ``"merge_vertices"`` (merge them first), ``"allow_pieces"`` (accept several pieces).
     """
     v, f = surface_arrays((vertices, faces), name)
     p = _prefix(name)
@@ -143,8 +200,9 @@ def check_surface(vertices: Any, faces: Any, name: str = "mesh", *, closed: bool
                 f"{p}: {int((~used).sum())} unreferenced vertices are used by no face "
                 f"(e.g. vertex {i} = {_fmt_vec(v[i])})"
             )
-    if not closed:
-        return
-    if f.shape[0] == 0:
-        raise InvalidMesh(f"{p}: has no faces; a closed surface needs at least 4")
-    _check_closed(v, f, p)
+    if closed:
+        if f.shape[0] == 0:
+            raise InvalidMesh(f"{p}: has no faces; a closed surface needs at least 4")
+        _check_closed(v, f, p, fixes)
+    if one_piece:
+        _check_pieces(v, f, p, closed, fixes)

@@ -35,7 +35,7 @@ from wsim.handles import Handle, as_indices
 from wsim.validate import as_rotation, as_vec3, finite_number, positive_int
 from wsim.kernels import pbd_contact as kc
 from wsim.kernels import pbd as kp
-from wsim.materials import ElasticMaterial
+from wsim.materials import ElasticMaterial, body_material
 from wsim.pbd.model import MODEL_FORMAT_VERSION, ConstraintFamily, PbdModel, build_model
 
 _KERNELS = {"distance": kp.solve_distance, "bending": kp.solve_bending, "tet_volume": kp.solve_tet_volume}
@@ -97,8 +97,10 @@ class PbdBody(Body):
     """A soft body simulated with XPBD.
 
     Args:
-        mesh: closed surface, a ``trimesh.Trimesh`` or a (vertices, faces) pair [m].
-        material: elastic material (default: E = 1e5 Pa, nu = 0.3, rho = 1000 kg/m^3).
+        mesh: closed surface of one piece, a ``trimesh.Trimesh`` or a (vertices, faces) pair [m]
+            (open only with ``mass`` and no global ``volume``; several pieces only with ``allow_pieces``).
+        material: elastic material (default: E = 1e5 Pa, nu = 0.3, rho = 1000 kg/m^3), or a dict of
+            its arguments (``dict(E=1e5, nu=0.3, rho=1000.0)``), checked naming the body.
         name: USD prim name.
         position: translation applied to the mesh (and to ``interior_points``) [m].
         rotation: (3, 3) rotation applied to the particles about their centre of mass (default
@@ -142,12 +144,18 @@ class PbdBody(Body):
         velocities: (P, 3) initial particle velocities [m/s] (interior particles included; see
             ``particles()``), added to ``velocity`` and ``angular_velocity``; or use
             ``set_velocities`` once the body is in a World.
+        merge_vertices: merge the mesh's vertices at the same position first (a file whose faces
+            each have their own corners); particle indices (``pinned``, handles, ``tets``) and
+            ``faces`` then refer to the merged vertices (the first of each coincident set, in order).
+        allow_pieces: accept a mesh of several separate pieces and simulate them as one body (one
+            particle system: they share the global volume constraint and the centre of mass).
+            Otherwise such a mesh is refused: make one body per piece.
     """
 
     def __init__(
         self,
         mesh,
-        material: ElasticMaterial | None = None,
+        material: ElasticMaterial | dict[str, Any] | None = None,
         *,
         name: str = "pbd_body",
         position: Sequence[float] = (0.0, 0.0, 0.0),
@@ -181,19 +189,22 @@ class PbdBody(Body):
         use_graph: bool = True,
         conserve_angular_momentum: bool | None = None,
         velocities: np.ndarray | None = None,
+        merge_vertices: bool = False,
+        allow_pieces: bool = False,
     ) -> None:
         super().__init__(name, velocity, angular_velocity)
-        self.material = material if material is not None else ElasticMaterial(E=1.0e5, nu=0.3, rho=1000.0)
-        if not isinstance(self.material, ElasticMaterial):
-            raise InvalidParameter(f"body '{name}': material must be a wsim.ElasticMaterial")
-        vertices, faces = wmesh.surface_arrays(mesh, name=f"body '{name}'")
+        # a dict of ElasticMaterial's arguments is checked naming the body
+        self.material = body_material(material, name, default=ElasticMaterial(E=1.0e5, nu=0.3, rho=1000.0))
+        vertices, faces = wmesh.surface_arrays(mesh, name=f"body '{name}'", merge_vertices=merge_vertices)
         # A closed surface must be valid as one (watertight, consistently outward). An open surface
         # (or bare particles) is allowed only when nothing needs an enclosed volume: mass given,
-        # no global volume constraint.
+        # no global volume constraint. Several pieces only when asked for (allow_pieces).
         closed = len(faces) > 0 and not wmesh.has_boundary(faces)
+        fixes = ("merge_vertices", "allow_pieces")
         if not closed and (mass is None or volume):
-            wmesh.check_surface(vertices, faces, name=f"body '{name}'", closed=True)  # raises, naming the defect
-        wmesh.check_surface(vertices, faces, name=f"body '{name}'", closed=closed)
+            wmesh.check_surface(vertices, faces, name=f"body '{name}'", closed=True, fixes=fixes)  # raises, naming the defect
+        wmesh.check_surface(vertices, faces, name=f"body '{name}'", closed=closed, one_piece=not allow_pieces,
+                            fixes=fixes)
 
         if substeps is not None and dt is not None:
             raise InvalidParameter(f"body '{name}': give substeps or dt, not both")
@@ -307,6 +318,11 @@ class PbdBody(Body):
             if np.any(kinematic[hdl.vertices]):
                 raise InvalidParameter(f"body '{name}': handle '{hdl.name}' overlaps pinned vertices or another handle")
             kinematic[hdl.vertices] = True
+        # how errors name each handle's motion: its name (unless the default) and its place in handles=
+        self._handle_labels = [
+            f"body '{name}': " + (f"handle '{h.name}' (handles[{i}])" if h.name != "handle" else f"handles[{i}]") + " motion"
+            for i, h in enumerate(self.handles)
+        ]
         self._kinematic_mask = kinematic
         self._handle_idx = (
             np.concatenate([h.vertices for h in self.handles]) if self.handles else np.zeros(0, dtype=np.int64)
@@ -576,7 +592,9 @@ class PbdBody(Body):
             k = len(self._handle_idx)
             for s in range(substeps):
                 t = t0 + (s + 1) * h
-                host[s * k : (s + 1) * k] = np.concatenate([hd.targets(t, rest[hd.vertices]) for hd in self.handles])
+                frame = self._frame_of(t)
+                host[s * k : (s + 1) * k] = np.concatenate(
+                    [hd.targets(t, rest[hd.vertices], what, frame) for hd, what in zip(self.handles, self._handle_labels)])
             wp.copy(self._handle_targets_d, self._handle_targets_h)
         for dc in self._mesh_colliders:
             for s in range(substeps + 1):

@@ -1,0 +1,82 @@
+"""What a DCC tool reads from wsim's USD besides points (issue 19, point 2): vertex normals, a
+display colour per body, and a start-frame offset of the time codes (kept by ``wsim recover``)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from pxr import Usd, UsdGeom
+
+import wsim
+from wsim import usd
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "scenes"))
+import soft_drop  # noqa: E402
+
+
+def _two_balls() -> wsim.World:
+    world = wsim.World(fps=30, device="cpu")
+    world.add_collider(wsim.GroundPlane(0.0))
+    for k in range(2):
+        world.add(wsim.PbdBody(trimesh.creation.icosphere(subdivisions=2, radius=0.1), name=f"ball{k}",
+                               position=(0.3 * k, 0.3, 0.0)))
+    return world
+
+
+def test_normals_are_outward_unit_vertex_normals(tmp_path: Path) -> None:
+    out = tmp_path / "n.usdc"
+    _two_balls().run(3, out=out, progress=False)
+    stage = Usd.Stage.Open(str(out))  # held: prims expire with their stage
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/ball0"))
+    assert mesh.GetNormalsInterpolation() == UsdGeom.Tokens.vertex
+    for code in (0.0, 3.0):
+        p = np.asarray(mesh.GetPointsAttr().Get(code), dtype=np.float64)
+        n = np.asarray(mesh.GetNormalsAttr().Get(code), dtype=np.float64)
+        np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-6)
+        radial = p - p.mean(axis=0)
+        radial /= np.linalg.norm(radial, axis=1, keepdims=True)
+        assert (n * radial).sum(axis=1).min() > 0.95  # a sphere's normals are radial and outward
+
+
+def test_each_body_has_its_own_display_color(tmp_path: Path) -> None:
+    world = _two_balls()
+    out = tmp_path / "c.usda"
+    world.run(1, out=out, progress=False)
+    stage = Usd.Stage.Open(str(out))
+    colors = [tuple(UsdGeom.Mesh(stage.GetPrimAtPath(f"/World/ball{k}")).GetDisplayColorAttr().Get()[0]) for k in range(2)]
+    assert colors[0] != colors[1]
+    world = _two_balls()
+    world.bodies[1].display_color = (0.1, 0.2, 0.9)
+    out = tmp_path / "chosen.usda"  # another file: USD keeps the first one's layer open in this process
+    world.run(1, out=out, progress=False)
+    stage = Usd.Stage.Open(str(out))
+    got = UsdGeom.Mesh(stage.GetPrimAtPath("/World/ball1")).GetDisplayColorAttr().Get()[0]
+    np.testing.assert_allclose(tuple(got), (0.1, 0.2, 0.9), atol=1e-6)
+
+
+def test_start_frame_offsets_every_time_code_and_survives_recovery(tmp_path: Path) -> None:
+    out = tmp_path / "film.usdc"
+    soft_drop.build(device="cpu").run(4, out=out, progress=False, start_frame=1001)
+    stage = Usd.Stage.Open(str(out))
+    assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (1001.0, 1005.0)
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/fish"))
+    assert mesh.GetPointsAttr().GetTimeSamples() == [1001.0 + k for k in range(5)]
+    paddle = UsdGeom.Xformable(stage.GetPrimAtPath("/World/colliders/paddle")).GetOrderedXformOps()[0]
+    assert paddle.GetAttr().GetTimeSamples()[0] == 1001.0
+
+    killed = tmp_path / "killed.usdc"
+    writer = usd.UsdWriter(killed, fps=30, start_frame=1001)
+    world = soft_drop.build(device="cpu")
+    world._bind()
+    writer.begin(world.bodies, world.surfaces)
+    for k in range(3):
+        writer.write_frame(k, k / 30)
+    writer._journal._fh.close()  # killed before close
+    usd.recover(killed)
+    st = Usd.Stage.Open(str(killed))
+    assert UsdGeom.Mesh(st.GetPrimAtPath("/World/fish")).GetPointsAttr().GetTimeSamples() == [1001.0, 1002.0, 1003.0]
+    assert (st.GetStartTimeCode(), st.GetEndTimeCode()) == (1001.0, 1003.0)
