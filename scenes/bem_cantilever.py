@@ -29,7 +29,8 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
         beam = wmesh.load_fitted(mesh, 1.0)
         beam.apply_translation((-beam.bounds[0, 0], 0.0, 0.0))
     beam.apply_translation((0.0, 1.0, 0.0))
-    body = world.add(wsim.BemBody(beam, wsim.ElasticMaterial(mu=3.0e5, nu=0.45, rho=1000.0), 0.005, name="beam"))
+    body = world.add(wsim.BemBody(beam, wsim.ElasticMaterial(mu=3.0e5, nu=0.45, rho=1000.0), 0.005,
+                                  name=wmesh.display_name(beam, "beam")))
     x = beam.vertices[:, 0]
     body.fix(np.flatnonzero(x <= x.min() + 0.02 * (x.max() - x.min())))  # the root face
     return world

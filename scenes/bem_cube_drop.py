@@ -28,7 +28,8 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
         shape = trimesh.creation.box(extents=(0.1, 0.1, 0.1)).subdivide().subdivide()
     else:
         shape = wmesh.load_fitted(mesh, 0.1)
-    world.add(wsim.BemBody(shape, wsim.ElasticMaterial(mu=1.0e5, nu=0.45, rho=1000.0), 0.005, name="cube",
+    world.add(wsim.BemBody(shape, wsim.ElasticMaterial(mu=1.0e5, nu=0.45, rho=1000.0), 0.005,
+                           name=wmesh.display_name(shape, "cube"),
                            position=(0.0, 0.15, 0.0), rotation=rodrigues(np.radians(20.0) * np.array([0.0, 0.0, 1.0])),
                            double_nodes=30.0 if mesh is None else None))
     return world

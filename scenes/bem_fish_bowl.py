@@ -57,6 +57,7 @@ def build(mesh: str | None = None, device: str | None = None, count: int = 6, de
     world.add_collider(wsim.GroundPlane(0.0, friction=0.4))
     world.add_collider(wsim.MeshCollider(bowl(), friction=0.4, name="bowl"))
     shape = fish(detail) if mesh is None else wmesh.load_fitted(mesh, 0.2)
+    label = wmesh.display_name(shape, "fish")  # a --mesh model's file stem: bunny_00, bunny_01, ...
     shape = shape.copy()
     shape.apply_translation(-shape.bounding_box.centroid)
     material = wsim.ElasticMaterial(mu=3.0e4, nu=0.45, rho=1000.0)
@@ -66,7 +67,7 @@ def build(mesh: str | None = None, device: str | None = None, count: int = 6, de
     for k in range(count):
         angle = 2.4 * k
         r = 0.08 * np.sqrt(k % 6) / 2.0
-        world.add(wsim.BemBody(shape, material, dt, operators=ops, name=f"fish_{k:02d}", friction=0.4,
+        world.add(wsim.BemBody(shape, material, dt, operators=ops, name=f"{label}_{k:02d}", friction=0.4,
                                position=(r * np.cos(angle), 0.42 + 0.1 * k, r * np.sin(angle)),
                                rotation=rodrigues(rng.normal(size=3) * 0.8),
                                angular_velocity=rng.normal(size=3) * 1.5))

@@ -28,12 +28,14 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
     world = wsim.World(fps=FPS, gravity=(0.0, -9.8, 0.0), device=device)
     world.add_collider(wsim.GroundPlane(0.0, friction=0.1))
     shape = wmesh.bumpy_cube(size=0.15, divisions=3, amplitude=0.005) if mesh is None else wmesh.load_fitted(mesh, 0.15)
+    model = wmesh.display_name(shape, "")  # a --mesh model's file stem: bunny_mu_0, bunny_mu_1, ...
     material = wsim.ElasticMaterial(mu=1.0e6, nu=0.3, rho=3000.0)
     dt = 0.003
     ops = build_operators(shape, material, dt, device=world.device)
     lift = 0.005 - shape.bounds[0, 1]
     for k, mu in enumerate(MU):
-        world.add(wsim.BemBody(shape, material, dt, operators=ops, name=f"mu_{k}", friction=mu,
+        world.add(wsim.BemBody(shape, material, dt, operators=ops, friction=mu,
+                               name=f"{model}_mu_{k}" if model else f"mu_{k}",
                                position=(-0.4 - shape.bounding_box.centroid[0], lift, 0.25 * (k - 1)),
                                velocity=(1.5, 0.0, 0.0)))
     return world

@@ -33,7 +33,7 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
     right = left.copy()
     right.apply_translation((left.extents[0], 0.0, 0.0))
     bodies, joints = decompose([left, right], wsim.ElasticMaterial(mu=1.0e5, nu=0.45, rho=1000.0), 0.005,
-                               name="cube", device=world.device,
+                               name=wmesh.display_name(left, "cube"), device=world.device,
                                velocity=(0.3, 0.0, 0.0))
     for b in bodies:
         world.add(b)

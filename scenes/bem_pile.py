@@ -27,13 +27,14 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
     world = wsim.World(fps=FPS, gravity=(0.0, -9.8, 0.0), device=device)
     world.add_collider(wsim.GroundPlane(0.0, friction=0.5))
     shape = trimesh.creation.box(extents=(0.1, 0.1, 0.1)).subdivide() if mesh is None else wmesh.load_fitted(mesh, 0.1)
+    label = wmesh.display_name(shape, "cube")  # a --mesh model's file stem: bunny_0, bunny_1, ...
     material = wsim.ElasticMaterial(mu=1.0e5, nu=0.45, rho=1000.0)
     dt = 0.005
     ops = build_operators(shape, material, dt, device=world.device)
     rng = np.random.default_rng(3)
     for k in range(6):
         x, z = 0.06 * np.cos(2.1 * k), 0.06 * np.sin(2.1 * k)
-        world.add(wsim.BemBody(shape, material, dt, operators=ops, name=f"cube_{k}", friction=0.5,
+        world.add(wsim.BemBody(shape, material, dt, operators=ops, name=f"{label}_{k}", friction=0.5,
                                position=(x, 0.1 + 0.13 * k, z) - shape.bounding_box.centroid,
                                rotation=rodrigues(rng.normal(size=3) * 0.6),
                                angular_velocity=rng.normal(size=3) * 2.0))

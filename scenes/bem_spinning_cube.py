@@ -30,7 +30,7 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
             shape,
             wsim.ElasticMaterial(mu=1.0e5, nu=0.45, rho=1000.0),
             DT,
-            name="bumpy_cube",
+            name=wmesh.display_name(shape, "bumpy_cube"),
             position=(0.0, 1.0, 0.0),
             velocity=(0.3, 4.0, 0.0),
             angular_velocity=(0.5, 3.0, 1.0),

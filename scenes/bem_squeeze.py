@@ -43,7 +43,7 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
     else:
         ring = wmesh.load_fitted(mesh, 0.3)
     ring_body = world.add(wsim.BemBody(ring, wsim.ElasticMaterial(mu=5.0e4, nu=0.48, rho=500.0), 1.0 / 600.0,
-                                       name="torus", position=(0.0, 0.5, 0.3)))
+                                       name=wmesh.display_name(ring, "torus"), position=(0.0, 0.5, 0.3)))
     squeeze(ring_body, 0, 4.0e3, lambda x: np.ones(len(x), dtype=bool))
     return world
 

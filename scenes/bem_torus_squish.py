@@ -30,7 +30,8 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
     else:
         ring = wmesh.load_fitted(mesh, 0.3)
     ring.apply_translation((0.0, 0.5, 0.0))
-    body = world.add(wsim.BemBody(ring, wsim.ElasticMaterial(mu=5.0e4, nu=0.48, rho=500.0), 0.002, name="torus",
+    body = world.add(wsim.BemBody(ring, wsim.ElasticMaterial(mu=5.0e4, nu=0.48, rho=500.0), 0.002,
+                                  name=wmesh.display_name(ring, "torus"),
                                   frame_update=False))
     x = ring.vertices[:, 0]
     span = x.max() - x.min()

@@ -59,7 +59,7 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
         p = cube.copy()
         p.apply_translation((-0.2 + 0.1 * k, 0.6, 0.2))
         pieces.append(p)
-    bodies, joints = decompose(pieces, MATERIAL, DT, name="cubes", device=world.device)
+    bodies, joints = decompose(pieces, MATERIAL, DT, name=wmesh.display_name(cube, "cubes"), device=world.device)
     for b in bodies:
         world.add(b)
     for j in joints:

@@ -48,6 +48,7 @@ def build(mesh: str | None = None, device: str | None = None, resolution: int = 
         world.add_collider(wsim.MeshCollider(wall, friction=0.4, name=name))
     rng = np.random.default_rng(7)
     shapes = _shapes(mesh)
+    label = wmesh.display_name(shapes[0], "body")  # a --mesh model's file stem: bunny_00, bunny_01, ...
     material = wsim.ElasticMaterial(E=5.0e4, nu=0.3, rho=500.0)
     for i in range(16):
         layer, slot = divmod(i, 4)
@@ -55,7 +56,7 @@ def build(mesh: str | None = None, device: str | None = None, resolution: int = 
         shape.apply_translation(-shape.bounds.mean(axis=0))
         x = (slot % 2 - 0.5) * 0.27 + rng.uniform(-0.02, 0.02)
         z = (slot // 2 - 0.5) * 0.27 + rng.uniform(-0.02, 0.02)
-        world.add(wsim.EolBody(shape, material, resolution=resolution, name=f"body_{i:02d}",
+        world.add(wsim.EolBody(shape, material, resolution=resolution, name=f"{label}_{i:02d}",
                                position=(x, 0.15 + 0.27 * layer, z), rotation=Rotation.random(random_state=rng).as_matrix(),
                                damping=20.0, friction=0.4))
     return world

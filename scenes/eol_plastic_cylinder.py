@@ -44,6 +44,7 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
         shape.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))  # axis up
     else:
         shape = wmesh.load_fitted(mesh, HEIGHT).copy()
+    label = wmesh.display_name(shape, "cylinder")  # before the remesh below, which drops the file's name
     shape.apply_translation(np.array([0.0, HEIGHT / 2, 0.0]) - shape.bounds.mean(axis=0))
     # triangles below the grid spacing: the exported surface can follow the dent
     shape = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(shape.vertices, shape.faces, HEIGHT / RESOLUTION))
@@ -53,7 +54,7 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
             wsim.ElasticMaterial(E=5.0e4, nu=0.3, rho=500.0),
             resolution=RESOLUTION,
             lagrangian="rigid",
-            name="cylinder",
+            name=label,
             plasticity=wsim.Plasticity(yield_stress=3.0e3, flow_rate=100.0),
             damping=20.0,
         )

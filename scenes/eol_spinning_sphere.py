@@ -27,6 +27,7 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
     world = wsim.World(fps=FPS, gravity=(0.0, -9.81, 0.0), device=device)
     world.add_collider(wsim.GroundPlane(0.0))
     shape = trimesh.creation.icosphere(subdivisions=3, radius=0.3) if mesh is None else wmesh.load_fitted(mesh, 0.6)
+    label = wmesh.display_name(shape, "ball")
     shape = shape.copy()
     shape.apply_translation(np.array([0.0, 1.0, 0.0]) - shape.bounds.mean(axis=0))
     axis = np.array([0.3, 1.0, 0.2]) / np.linalg.norm([0.3, 1.0, 0.2])
@@ -35,7 +36,7 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
             shape,
             wsim.ElasticMaterial(E=5.0e4, nu=0.3, rho=500.0),
             resolution=RESOLUTION,
-            name="ball",
+            name=label,
             velocity=(0.4, 0.0, 0.0),
             angular_velocity=np.pi * axis,
             damping=20.0,

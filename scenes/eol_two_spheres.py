@@ -28,12 +28,13 @@ RESOLUTION = 12
 def build(mesh: str | None = None, device: str | None = None, resolution: int = RESOLUTION) -> wsim.World:
     world = wsim.World(fps=FPS, gravity=(0.0, 0.0, 0.0), device=device)
     shape = trimesh.creation.icosphere(subdivisions=3, radius=0.25) if mesh is None else wmesh.load_fitted(mesh, 0.5)
+    model = wmesh.display_name(shape, "")  # a --mesh model's file stem: bunny_left, bunny_right
     shape = shape.copy()
     shape.apply_translation(-shape.bounds.mean(axis=0))
     material = wsim.ElasticMaterial(E=5.0e4, nu=0.3, rho=500.0)
-    for name, x, y, v in (("left", -0.4, 0.0, 2.0), ("right", 0.4, 0.05, -2.0)):
-        world.add(wsim.EolBody(shape, material, resolution=resolution, name=name, position=(x, y, 0.0),
-                               velocity=(v, 0.0, 0.0), damping=20.0, friction=0.3))
+    for side, x, y, v in (("left", -0.4, 0.0, 2.0), ("right", 0.4, 0.05, -2.0)):
+        world.add(wsim.EolBody(shape, material, resolution=resolution, name=f"{model}_{side}" if model else side,
+                               position=(x, y, 0.0), velocity=(v, 0.0, 0.0), damping=20.0, friction=0.3))
     return world
 
 

@@ -33,12 +33,12 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
                            position=(0.25, 0.0755, 0.0), damping=50.0))
     ball = (trimesh.creation.icosphere(subdivisions=2, radius=0.08) if mesh is None
             else wmesh.load_fitted(mesh, 0.16))
+    label = wmesh.display_name(ball, "ball")  # a --mesh model's file stem: bunny_on_cube, ...
     ball = ball.copy()
     ball.apply_translation(-ball.bounding_box.centroid)
     material = wsim.ElasticMaterial(E=2.0e5, nu=0.3, rho=600.0)
-    for name, at in (("ball_on_cube", (-0.23, 0.45, 0.02)), ("ball_on_block", (0.22, 0.4, -0.03)),
-                     ("ball_on_ball", (-0.2, 0.75, 0.0))):
-        world.add(wsim.PbdBody(ball, material, tets="auto", name=name, position=at, damping=0.01))
+    for target, at in (("cube", (-0.23, 0.45, 0.02)), ("block", (0.22, 0.4, -0.03)), ("ball", (-0.2, 0.75, 0.0))):
+        world.add(wsim.PbdBody(ball, material, tets="auto", name=f"{label}_on_{target}", position=at, damping=0.01))
     return world
 
 

@@ -26,7 +26,7 @@ STRIDE = 10
 
 def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
     world = posed_neck.build(mesh=mesh, device=device)
-    twin = posed_neck.make_body(mesh, name="creature")
+    twin = posed_neck.make_body(mesh)  # named like the simulated body: creature, or the --mesh file's stem
     world.add(
         wsim.PbdReconstruction(twin, stride=STRIDE, basis="pde", frames=FRAMES, fps=world.fps, offset=(0.0, 0.0, 1.0))
     )

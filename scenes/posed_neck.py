@@ -41,12 +41,14 @@ def head_motion(pivot: np.ndarray, long_axis: np.ndarray, bend_axis: np.ndarray)
     return motion
 
 
-def make_body(mesh: str | None = None, name: str = "creature") -> wsim.PbdBody:
-    """The posed creature: torso pinned, head driven by a handle, tetrahedral XPBD body."""
+def make_body(mesh: str | None = None, name: str | None = None) -> wsim.PbdBody:
+    """The posed creature: torso pinned, head driven by a handle, tetrahedral XPBD body; named
+    ``name``, else "creature" (a ``--mesh`` model: its file's stem)."""
     if mesh is None:
         shape = wmesh.neck_body(length=1.6, rings=48, sectors=16)
     else:
         shape = wmesh.load_fitted(mesh, 1.6)  # as long as the procedural creature, like every scene's --mesh
+    name = wmesh.display_name(shape, "creature") if name is None else name
     v = np.asarray(shape.vertices)
     long_axis = np.eye(3)[int(np.argmax(np.ptp(v, axis=0)))]
     u = v @ long_axis

@@ -61,14 +61,15 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
     world.add(wsim.EolBody(trimesh.creation.icosphere(subdivisions=2, radius=0.12), soft, resolution=6, name="eol_ball",
                            position=(0.28, 0.5, 0.02), velocity=(0.0, -0.5, 0.0), damping=30.0, friction=0.5))
     creature = _creature(mesh)
+    fish = wmesh.display_name(creature, "fish")  # a --mesh model's file stem: pbd_bunny_a, ...
     rubber = wsim.ElasticMaterial(E=2.0e5, nu=0.3, rho=600.0)
-    for name, at, spin in (("pbd_fish_a", (-0.33, 0.45, 0.03), (0.0, 2.0, 1.0)),
-                           ("pbd_fish_b", (0.2, 0.85, -0.04), (1.5, 0.0, 0.0))):
+    for name, at, spin in ((f"pbd_{fish}_a", (-0.33, 0.45, 0.03), (0.0, 2.0, 1.0)),
+                           (f"pbd_{fish}_b", (0.2, 0.85, -0.04), (1.5, 0.0, 0.0))):
         world.add(wsim.PbdBody(creature, rubber, tets="auto", name=name, position=at, angular_velocity=spin,
                                damping=0.01))
     world.add(wsim.PbdBody(trimesh.creation.icosphere(subdivisions=2, radius=0.08), rubber, tets="auto", name="pbd_ball",
                            position=(-0.3, 0.8, -0.02), damping=0.01))
-    twin = wsim.PbdBody(creature, rubber, name="fish_replayed", position=(0.0, 0.5, 0.6),
+    twin = wsim.PbdBody(creature, rubber, name=f"{fish}_replayed", position=(0.0, 0.5, 0.6),
                         angular_velocity=(0.0, 1.0, 2.5), damping=0.01)
     world.add(wsim.PbdReconstruction(twin, stride=8, basis="pde", frames=FRAMES, fps=FPS))
     return world

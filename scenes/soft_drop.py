@@ -40,7 +40,7 @@ def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
         wsim.PbdBody(
             shape,
             wsim.ElasticMaterial(E=2.0e5, nu=0.4, rho=800.0),
-            name="fish",
+            name=wmesh.display_name(shape, "fish"),
             position=(0.0, lift, 0.0),
             velocity=(0.0, -1.0, 0.0),
             angular_velocity=(0.0, 1.5, 2.0),

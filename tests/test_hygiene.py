@@ -100,7 +100,7 @@ def test_mesh_is_fitted_and_says_so_or_kept_in_its_own_units(tmp_path: Path) -> 
     assert kept.returncode == 0, kept.stderr
     assert "its own units x 0.004" in kept.stderr
     stage = Usd.Stage.Open(str(tmp_path / "k.usdc"))
-    p = np.asarray(UsdGeom.Mesh(stage.GetPrimAtPath("/World/fish")).GetPointsAttr().Get(0.0))
+    p = np.asarray(UsdGeom.Mesh(stage.GetPrimAtPath("/World/ball")).GetPointsAttr().Get(0.0))  # named after the file
     np.testing.assert_allclose(np.ptp(p, axis=0), 0.4, rtol=0.02)
     bad = _cli("run", "scenes/soft_drop.py", "--mesh", str(ball), "--mesh-scale", "-1", "--frames", "1", "--device", "cpu")
     assert bad.returncode == 2 and "--mesh-scale" in bad.stderr

@@ -80,3 +80,56 @@ def test_start_frame_offsets_every_time_code_and_survives_recovery(tmp_path: Pat
     st = Usd.Stage.Open(str(killed))
     assert UsdGeom.Mesh(st.GetPrimAtPath("/World/fish")).GetPointsAttr().GetTimeSamples() == [1001.0, 1002.0, 1003.0]
     assert (st.GetStartTimeCode(), st.GetEndTimeCode()) == (1001.0, 1003.0)
+
+
+def _with_uv(mesh: trimesh.Trimesh) -> tuple[trimesh.Trimesh, np.ndarray]:
+    """The mesh with per-vertex texture coordinates from its rest positions; (mesh, uv per corner)."""
+    v = np.asarray(mesh.vertices)
+    uv = (v[:, :2] - v[:, :2].min(0)) / np.ptp(v[:, :2], axis=0)
+    out = trimesh.Trimesh(v, mesh.faces, process=False, visual=trimesh.visual.TextureVisuals(uv=uv))
+    return out, uv[np.asarray(mesh.faces)]
+
+
+def _written_st(path: Path, prim: str) -> tuple[np.ndarray, str]:
+    stage = Usd.Stage.Open(str(path))
+    st = UsdGeom.PrimvarsAPI(stage.GetPrimAtPath(prim)).GetPrimvar("st")
+    return np.asarray(st.Get()).reshape(-1, 3, 2), st.GetInterpolation()
+
+
+def test_uvs_of_the_input_mesh_survive_for_every_method(tmp_path: Path) -> None:
+    sphere, want = _with_uv(trimesh.creation.icosphere(subdivisions=1, radius=0.1))
+    world = wsim.World(fps=30, device="cpu")
+    material = wsim.ElasticMaterial(E=1e5, nu=0.3, rho=1000.0)
+    world.add(wsim.PbdBody(sphere, material, name="pbd", position=(0, 1, 0)))
+    world.add(wsim.EolBody(sphere, material, resolution=6, name="eol", position=(1, 1, 0)))
+    world.add(wsim.BemBody(sphere, wsim.ElasticMaterial(mu=1e5, nu=0.45, rho=1000.0), 0.01, name="bem", position=(2, 1, 0)))
+    out = tmp_path / "uv.usda"
+    world.run(1, out=out, progress=False)
+    for name in ("pbd", "eol", "bem"):
+        st, interp = _written_st(out, f"/World/{name}")
+        assert interp == UsdGeom.Tokens.faceVarying
+        np.testing.assert_allclose(st, want, atol=1e-6, err_msg=name)
+    # a mesh without UVs gets no st primvar
+    plain = tmp_path / "plain.usda"
+    _two_balls().run(1, out=plain, progress=False)
+    stage = Usd.Stage.Open(str(plain))
+    assert not UsdGeom.PrimvarsAPI(stage.GetPrimAtPath("/World/ball0")).GetPrimvar("st")
+
+
+def test_a_uv_seam_survives_merging_its_vertices(tmp_path: Path) -> None:
+    """A box whose faces have their own corners (as a UV-mapped OBJ loads): each corner keeps its
+    UV after ``merge_vertices=True`` joins the vertices at the seams."""
+    box = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
+    box.unmerge_vertices()
+    corner_uv = np.tile(np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]], dtype=np.float32), (len(box.faces), 1))
+    corner_uv += np.repeat(np.arange(len(box.faces)), 3)[:, None] * 0.01  # every corner of every face its own UV
+    uv = np.empty_like(corner_uv)
+    uv[box.faces.ravel()] = corner_uv  # unmerged: each vertex is one corner
+    mesh = trimesh.Trimesh(box.vertices, box.faces, process=False, visual=trimesh.visual.TextureVisuals(uv=uv))
+    world = wsim.World(fps=30, device="cpu")
+    body = world.add(wsim.PbdBody(mesh, name="box", position=(0, 1, 0), merge_vertices=True))
+    assert int(body.faces.max()) + 1 == 8  # merged: a closed box
+    out = tmp_path / "seam.usda"
+    world.run(1, out=out, progress=False)
+    st, _ = _written_st(out, "/World/box")
+    np.testing.assert_allclose(st.reshape(-1, 2), corner_uv, atol=1e-6)

@@ -38,11 +38,16 @@ if TYPE_CHECKING:
 class Body(ABC):
     """Base class of simulated bodies.
 
+    ``face_uv``: (M, 3, 2) texture coordinates at the corners of ``faces`` (from the input mesh,
+    ``wsim.mesh.face_uvs``), written to the USD output as ``primvars:st``; None without them.
+
     Args:
         name: the body's name (its USD prim is /World/<name>); unique within a World.
         velocity: initial linear velocity of the centre of mass [m/s].
         angular_velocity: initial angular velocity about the centre of mass [rad/s].
     """
+
+    face_uv: np.ndarray | None = None
 
     def __init__(
         self,

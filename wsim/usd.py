@@ -2,8 +2,9 @@
 
 Layout of a written stage (default prim ``/World``):
 
-- ``/World/<body>``: Mesh; topology (faceVertexCounts/Indices) and ``displayColor`` (the body's
-  ``display_color``, else a palette colour) written once; ``points``, ``extent``,
+- ``/World/<body>``: Mesh; topology (faceVertexCounts/Indices), ``displayColor`` (the body's
+  ``display_color``, else a palette colour) and the input model's texture coordinates
+  (``primvars:st``, faceVarying, when it has them: ``Body.face_uv``) written once; ``points``, ``extent``,
   ``velocities`` and vertex ``normals`` (area-weighted, for smooth shading) time-sampled per
   frame; ``subdivisionScheme = none`` so DCC tools show the simulated polygons instead of a
   Catmull-Clark limit surface.
@@ -355,6 +356,11 @@ class UsdWriter:
             self._meshes[path].SetNormalsInterpolation(UsdGeom.Tokens.vertex)
             self._bodies[path] = body
             self._faces[path] = np.asarray(body.faces, dtype=np.int64)
+            uv = getattr(body, "face_uv", None)
+            if uv is not None and len(uv) == len(body.faces):  # the input model's UVs, per face corner
+                st = UsdGeom.PrimvarsAPI(self._meshes[path].GetPrim()).CreatePrimvar(
+                    "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying)
+                st.Set(Vt.Vec2fArray.FromNumpy(np.ascontiguousarray(uv, dtype=np.float32).reshape(-1, 2)))
         if colliders:
             UsdGeom.Scope.Define(stage, "/World/colliders")
         for i, (c, path) in enumerate(zip(colliders, collider_paths)):

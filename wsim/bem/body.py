@@ -195,6 +195,7 @@ class BemBody(VertexImpulses, Body):
         if matvec not in stepper.BACKENDS:
             raise InvalidParameter(f"body '{name}': matvec = {matvec!r} must be one of {', '.join(stepper.BACKENDS)}")
         vertices, faces = wmesh.surface_arrays(mesh, f"body '{name}'", merge_vertices=merge_vertices)
+        self.face_uv = wmesh.face_uvs(mesh)  # carried to the USD output (faces keep their order)
         # validates (closed, one piece, oriented, non-degenerate) before anything is built
         surface = prepare_surface(vertices, faces, double_nodes=double_nodes, name=f"body '{name}'",
                                   fixes=("merge_vertices",))

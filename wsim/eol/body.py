@@ -328,6 +328,7 @@ class EolBody(VertexImpulses, Body):
         if self.damping < 0.0 or not 0.0 <= floor <= 1.0:
             raise InvalidParameter(f"{p}: damping must be >= 0 and mass_floor in [0, 1]")
         vertices, faces = wmesh.surface_arrays(mesh, p, merge_vertices=merge_vertices)
+        self.face_uv = wmesh.face_uvs(mesh)  # carried to the USD output (faces keep their order)
         wmesh.check_surface(vertices, faces, name=p, closed=True, one_piece=True, fixes=("merge_vertices",))
         self.grid = make_grid(vertices, resolution, padding)  # validates the resolution; grows with the body (_regrid)
         self.resolution = int(resolution)

@@ -3,6 +3,8 @@
 * :mod:`~wsim.mesh.surface` -- array input (``surface_arrays``, with ``merge_vertices``), mesh files
   (``load``, ``load_fitted``), measures (``signed_volume``, ``face_areas``, ``vertex_normals``,
   ``vertex_areas``) and vertices at the same position (``merge_coincident_vertices``);
+* :mod:`~wsim.mesh.stage` -- ``load_usd``: a ``UsdGeom.Mesh`` prim of a USD stage (``load`` also
+  takes ``file.usd:/World/prim``), in metres, Y up, outward faces, with its texture coordinates;
 * :mod:`~wsim.mesh.validate` -- ``check_surface``: every defect raised with an example index (and,
   for a body, several pieces; split vertices get a hint to merge them);
 * :mod:`~wsim.mesh.topology` -- ``edges``, ``hinges``, ``has_boundary``, ``pieces``;
@@ -26,8 +28,11 @@ Conventions used throughout (and expected by every caller):
 
 from wsim.mesh.inside import SurfaceQuery, inside_surface, winding_number
 from wsim.mesh.shapes import beam, bumpy_cube, bumpy_sphere, fish, neck_body, torus
+from wsim.mesh.stage import load_usd
 from wsim.mesh.surface import (
+    display_name,
     face_areas,
+    face_uvs,
     load,
     load_fitted,
     merge_coincident_vertices,
@@ -43,6 +48,9 @@ from wsim.mesh.validate import check_surface
 __all__ = [
     "surface_arrays",
     "load",
+    "load_usd",
+    "display_name",
+    "face_uvs",
     "load_fitted",
     "signed_volume",
     "face_areas",

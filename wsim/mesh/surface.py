@@ -193,7 +193,13 @@ def vertex_areas(vertices: Any, faces: Any) -> np.ndarray:
 
 
 def load(path: str | os.PathLike, name: str | None = None) -> trimesh.Trimesh:
-    """Load a surface mesh file (OBJ, PLY, STL, GLB, ...) as one triangle mesh, or InvalidMesh."""
+    """Load a surface mesh file (OBJ, PLY, STL, GLB, ...) as one triangle mesh, or InvalidMesh.
+    A USD file (``.usd/.usda/.usdc/.usdz``, optionally ``file.usd:/World/prim``) goes to ``load_usd``."""
+    from wsim.mesh.stage import USD_SUFFIXES, load_usd, split_prim_path  # here: no import cycle
+
+    file, prim = split_prim_path(path)
+    if prim is not None or Path(file).suffix.lower() in USD_SUFFIXES:
+        return load_usd(file, prim)
     p = Path(path).expanduser()
     label = name or p.name
     if not p.is_file():
@@ -204,7 +210,33 @@ def load(path: str | os.PathLike, name: str | None = None) -> trimesh.Trimesh:
         raise InvalidMesh(f"mesh '{label}': cannot read '{p}': {exc}") from None
     if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
         raise InvalidMesh(f"mesh '{label}': '{p}' holds no triangles")
+    m.metadata["wsim_source"] = str(p)
     return m
+
+
+def display_name(mesh: Any, default: str) -> str:
+    """The name of a body made from ``mesh`` (its USD prim ``/World/<name>``): the file's stem when
+    the mesh came from a file (``load``, ``load_fitted``: a user's ``--mesh bunny.obj`` becomes
+    ``bunny``), else ``default`` (a scene's procedural shape)."""
+    source = getattr(mesh, "metadata", {}).get("wsim_source") if isinstance(mesh, trimesh.Trimesh) else None
+    return Path(source).stem if source else default
+
+
+def face_uvs(mesh: Any) -> np.ndarray | None:
+    """(F, 3, 2) float32 texture coordinates at each face's corners, in the mesh's face order, or
+    None when the mesh has none: ``metadata["wsim_face_uv"]`` (set by the USD loader), else
+    trimesh's per-vertex ``visual.uv`` (OBJ, GLB, PLY files with texture coordinates). Per corner,
+    so a UV seam survives merging the seam's vertices (``merge_vertices=True``)."""
+    if not isinstance(mesh, trimesh.Trimesh):
+        return None
+    uv = mesh.metadata.get("wsim_face_uv")
+    if uv is not None:
+        uv = np.asarray(uv, dtype=np.float32)
+        return uv if uv.shape == (len(mesh.faces), 3, 2) else None
+    per_vertex = getattr(mesh.visual, "uv", None)
+    if per_vertex is None or len(per_vertex) != len(mesh.vertices):
+        return None
+    return np.asarray(per_vertex, dtype=np.float32)[np.asarray(mesh.faces)]
 
 
 #: ``wsim run --mesh-scale S`` sets this: scenes then use a ``--mesh`` model in its own units times S
