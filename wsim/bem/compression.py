@@ -1,0 +1,318 @@
+"""Haar-wavelet compression of the BEM's dense operators (the paper's Sec. 3.3; spec Sec. 1.6).
+
+The matrices H_k, G_k, H_0^-1 and H_0^-1 G' are smooth away from wavefronts: rows (and columns)
+of nearby nodes with similar normals are alike. After reordering, a 2-D Haar transform gathers
+each matrix's energy in few coefficients, and keeping the largest ones compresses it.
+
+* **Reordering** (``permutation``): the nodes by a spatial locality order ("v"), the coordinates
+  as all x, then all y, then all z ("c"; the paper's Fig. 3: 3 x 3 subblocks of smooth kernels),
+  or both ("v+c", the default). The node order is a Morton (Z-order) curve of the node positions:
+  like the authors' cache-oblivious layout [YLPM05] it is local at every scale, so each Haar
+  block of 2^k consecutive indices is a compact patch of surface (no maintained library offers
+  that layout; the curve is ten lines). Reverse Cuthill-McKee on the node graph (scipy), the
+  obvious library order, was measured worse than no reordering at all: its indices sweep along
+  BFS fronts, so consecutive indices lie on a ring, not a patch (``tools/study_bem_compression.py``:
+  bumpy cube N = 602, H_1 at CR 8: v+c Morton 0.13, c alone 0.18, v+c RCM 0.25, none 0.50, naive
+  pruning 0.53). A double node stays next to its original.
+* **Transform**: the orthonormal 1-D Haar transform W (full depth) on rows and columns of the
+  reordered matrix padded with zeros to a power of two, C = W P A P^T W^T (the tensor-product
+  "standard form"). Orthonormality makes the relative Frobenius error of the reconstruction the
+  norm of the dropped coefficients over the norm of all, known without reconstructing.
+* **Keeping**: the ``keep`` largest |C_ij| (the paper's rule; CR = entries / kept), stored CSR.
+* **Products**: A x = P^T W^T C W P x (two O(n) transforms and one sparse product), and a row of
+  A (for Gauss-Seidel) from the log2(n) + 1 rows of C that its Haar basis touches.
+
+``choose_keep`` picks, for a target ``eps``, the fewest coefficients whose relative matvec error
+on given vectors stays below eps (what the history products see), by bisection on the sorted
+coefficients.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from wsim.errors import InvalidParameter
+
+ORDERINGS = ("none", "v", "c", "v+c")
+MARGIN = 0.6  # ``choose_keep``: the unseen half of the tuning vectors must stay below MARGIN eps
+
+
+def _pow2(n: int) -> int:
+    return 1 << max(0, int(n - 1).bit_length())
+
+
+def haar(x: np.ndarray, axis: int = 0) -> np.ndarray:
+    """The orthonormal full-depth 1-D Haar transform of ``x`` along ``axis`` (length a power of
+    two): [coarsest average, coarsest detail, ..., finest details]."""
+    y = np.moveaxis(np.asarray(x, dtype=np.float64), axis, 0).copy()
+    n = y.shape[0]
+    if n & (n - 1):
+        raise InvalidParameter(f"haar: length {n} is not a power of two")
+    s = np.sqrt(0.5)
+    m = n
+    while m > 1:
+        a = (y[0:m:2] + y[1:m:2]) * s
+        d = (y[0:m:2] - y[1:m:2]) * s
+        y[: m // 2], y[m // 2: m] = a, d
+        m //= 2
+    return np.moveaxis(y, 0, axis)
+
+
+def inverse_haar(y: np.ndarray, axis: int = 0) -> np.ndarray:
+    """The inverse of ``haar`` (its transpose: the transform is orthonormal)."""
+    x = np.moveaxis(np.asarray(y, dtype=np.float64), axis, 0).copy()
+    n = x.shape[0]
+    s = np.sqrt(0.5)
+    m = 2
+    while m <= n:
+        a, d = x[: m // 2].copy(), x[m // 2: m].copy()
+        x[0:m:2], x[1:m:2] = (a + d) * s, (a - d) * s
+        m *= 2
+    return np.moveaxis(x, 0, axis)
+
+
+def haar_basis(i: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The nonzero entries of column i of W (W e_i: the Haar coefficients of a unit vector at i),
+    as (indices, values): one per level plus the average, log2(n) + 1 of them."""
+    idx, val = [0], [n ** -0.5]
+    m = n
+    while m > 1:  # detail of the block of size m holding i, at position n/m + i // m
+        half = m // 2
+        k = i // m
+        idx.append(n // m + k)
+        val.append((m ** -0.5) * (1.0 if (i % m) < half else -1.0))
+        m = half
+    return np.asarray(idx), np.asarray(val)
+
+
+def node_order(nodes: np.ndarray, faces: np.ndarray, vertex: np.ndarray | None = None, how: str = "morton") -> np.ndarray:
+    """A locality order of the surface's nodes (new -> old node index). ``how``: "morton" (Z-curve
+    of the positions; the default, see the module docstring) or "rcm" (reverse Cuthill-McKee on
+    the vertex graph of the faces, scipy; measured worse).
+    ``vertex`` (node -> vertex) keeps the double nodes of a vertex next to each other."""
+    from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+    nodes = np.asarray(nodes, dtype=np.float64)
+    n = len(nodes)
+    vertex = np.arange(n) if vertex is None else np.asarray(vertex)
+    nv = int(vertex.max()) + 1
+    if how == "rcm":
+        f = np.asarray(faces)
+        fv = vertex[f] if f.max() < n else f  # faces over nodes or over vertices
+        rows = np.concatenate([fv[:, 0], fv[:, 1], fv[:, 2]])
+        cols = np.concatenate([fv[:, 1], fv[:, 2], fv[:, 0]])
+        graph = sp.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(nv, nv)).tocsr()
+        graph = ((graph + graph.T) > 0).astype(np.int8).tocsr()
+        vorder = np.asarray(reverse_cuthill_mckee(graph, symmetric_mode=True))
+    elif how == "morton":
+        vpos = np.zeros((nv, 3))
+        vpos[vertex] = nodes
+        q = ((vpos - vpos.min(0)) / max(np.ptp(vpos, axis=0).max(), 1e-300) * 1023).astype(np.int64)
+        code = np.zeros(nv, dtype=np.int64)
+        for b in range(10):
+            for d in range(3):
+                code |= ((q[:, d] >> b) & 1) << (3 * b + d)
+        vorder = np.argsort(code, kind="stable")
+    else:
+        raise InvalidParameter(f"node order {how!r} must be 'rcm' or 'morton'")
+    rank = np.empty(nv, dtype=np.int64)
+    rank[vorder] = np.arange(nv)
+    return np.lexsort((np.arange(n), rank[vertex]))  # by the vertex's rank; a vertex's nodes in their order
+
+
+def permutation(n_nodes: int, ordering: str = "v+c", order: np.ndarray | None = None) -> np.ndarray:
+    """(3 N,) new -> old index of the 3N unknowns (node-major x, y, z: old index 3 i + c) for an
+    ``ordering`` of ``ORDERINGS``; ``order`` the node order ("v"; ``node_order``)."""
+    if ordering not in ORDERINGS:
+        raise InvalidParameter(f"ordering {ordering!r} must be one of {', '.join(ORDERINGS)}")
+    nodes = np.arange(n_nodes) if ordering in ("none", "c") or order is None else np.asarray(order)
+    if ordering in ("c", "v+c"):  # all x, then all y, then all z
+        return (3 * nodes[None, :] + np.arange(3)[:, None]).ravel()
+    return (3 * nodes[:, None] + np.arange(3)[None, :]).ravel()
+
+
+@dataclass(frozen=True)
+class CompressedMatrix:
+    """A square matrix A (n x n) as kept Haar coefficients: A ~ P^T W^T C W P, C sparse (CSR over
+    the padded size), ``perm`` P's new -> old index. ``norm`` = ||A||_F and ``dropped`` = the norm
+    of the coefficients not kept: by orthonormality the Frobenius error of the padded
+    reconstruction, so a bound on (and without padding equal to) the error of A's."""
+
+    n: int
+    perm: np.ndarray
+    C: sp.csr_matrix
+    norm: float
+    dropped: float
+
+    @property
+    def size(self) -> int:
+        return self.C.shape[0]
+
+    @property
+    def kept(self) -> int:
+        return int(self.C.nnz)
+
+    @property
+    def ratio(self) -> float:
+        """CR = n^2 / kept (the paper's: entries of the matrix over entries kept)."""
+        return self.n * self.n / max(self.kept, 1)
+
+    @property
+    def relative_error(self) -> float:
+        """||A - A_compressed||_F / ||A||_F, bounded from above (``dropped``)."""
+        return self.dropped / self.norm if self.norm > 0.0 else 0.0
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.C.data.nbytes + self.C.indices.nbytes + self.C.indptr.nbytes + self.perm.nbytes)
+
+    def _forward(self, x: np.ndarray) -> np.ndarray:
+        xp = np.zeros((self.size,) + x.shape[1:])
+        xp[: self.n] = x[self.perm]
+        return haar(xp, axis=0)
+
+    def matvec(self, x: np.ndarray) -> np.ndarray:
+        """A x for x of shape (n,) or (n, k)."""
+        x = np.asarray(x, dtype=np.float64)
+        yp = inverse_haar(self.C @ self._forward(x), axis=0)[: self.n]
+        y = np.empty_like(yp)
+        y[self.perm] = yp
+        return y
+
+    def row(self, r: int) -> np.ndarray:
+        """Row r of A (the reconstruction), in the original column order."""
+        inv = np.empty(self.n, dtype=np.int64)
+        inv[self.perm] = np.arange(self.n)
+        idx, val = haar_basis(int(inv[r]), self.size)
+        coeff = np.asarray(self.C[idx].T @ val).ravel()  # w_i^T C
+        rp = inverse_haar(coeff)[: self.n]
+        out = np.empty(self.n)
+        out[self.perm] = rp
+        return out
+
+    def row_dot(self, r: int, x: np.ndarray) -> float:
+        """(A x)_r from row r alone (what a Gauss-Seidel sweep asks)."""
+        return float(self.row(r) @ np.asarray(x, dtype=np.float64))
+
+    def to_dense(self) -> np.ndarray:
+        """The reconstructed A (n x n), original order."""
+        full = inverse_haar(inverse_haar(self.C.toarray(), axis=0), axis=1)[: self.n, : self.n]
+        out = np.empty_like(full)
+        out[np.ix_(self.perm, self.perm)] = full
+        return out
+
+
+def transform(A: np.ndarray, perm: np.ndarray) -> np.ndarray:
+    """C = W P A P^T W^T, padded to the next power of two (dense, float64)."""
+    A = np.asarray(A)
+    n = A.shape[0]
+    size = _pow2(n)
+    Ap = np.zeros((size, size))
+    Ap[:n, :n] = A[np.ix_(perm, perm)]
+    return haar(haar(Ap, axis=0), axis=1)
+
+
+def _largest(coeffs: np.ndarray, keep: int) -> np.ndarray:
+    flat = np.abs(coeffs).ravel()
+    keep = int(min(max(keep, 1), flat.size))
+    if keep >= flat.size:
+        return np.arange(flat.size)
+    return np.argpartition(flat, flat.size - keep)[flat.size - keep:]
+
+
+def _from_coefficients(coeffs: np.ndarray, n: int, perm: np.ndarray, keep: int, norm: float) -> CompressedMatrix:
+    size = coeffs.shape[0]
+    sel = _largest(coeffs, keep)
+    r, c = np.divmod(sel, size)
+    vals = coeffs.ravel()[sel]
+    C = sp.csr_matrix((vals, (r, c)), shape=(size, size))
+    C.sort_indices()
+    dropped2 = max(float(np.sum(coeffs * coeffs)) - float(np.sum(vals * vals)), 0.0)
+    return CompressedMatrix(n=n, perm=np.asarray(perm, dtype=np.int64), C=C, norm=norm, dropped=float(np.sqrt(dropped2)))
+
+
+def compress(A: np.ndarray, perm: np.ndarray | None = None, ratio: float | None = None,
+             keep: int | None = None) -> CompressedMatrix:
+    """A (n x n) compressed with the permutation ``perm`` (default: none) keeping ``keep``
+    coefficients or n^2 / ``ratio`` of them (ratio 1: all, lossless to round-off)."""
+    A = np.asarray(A)
+    n = A.shape[0]
+    if A.ndim != 2 or A.shape[1] != n:
+        raise InvalidParameter(f"compress: a square matrix is needed, got shape {A.shape}")
+    perm = np.arange(n) if perm is None else np.asarray(perm)
+    if (ratio is None) == (keep is None):
+        raise InvalidParameter("compress: give exactly one of ratio (CR >= 1) or keep")
+    if ratio is not None:
+        if not ratio >= 1.0:
+            raise InvalidParameter(f"compress: compression ratio {ratio} must be >= 1")
+        keep = int(round(n * n / ratio))
+    coeffs = transform(A, perm)
+    if ratio == 1.0:
+        keep = coeffs.size  # everything, padding included (it is zero)
+    return _from_coefficients(coeffs, n, perm, int(keep), float(np.linalg.norm(A)))
+
+
+def prune(A: np.ndarray, ratio: float) -> tuple[np.ndarray, float]:
+    """Naive pruning (the paper's Fig. 7 baseline): keep the n^2 / ratio largest raw entries.
+    Returns (the pruned matrix, its relative Frobenius error)."""
+    A = np.asarray(A, dtype=np.float64)
+    sel = _largest(A, int(round(A.size / ratio)))
+    out = np.zeros_like(A)
+    out.ravel()[sel] = A.ravel()[sel]
+    return out, float(np.linalg.norm(A - out) / np.linalg.norm(A))
+
+
+def choose_keep(A: np.ndarray, perm: np.ndarray, eps: float, vectors: np.ndarray) -> CompressedMatrix:
+    """The fewest largest coefficients whose relative matvec error ||(A - A_c) x|| / ||A x|| stays
+    below ``eps`` for the columns x of ``vectors`` (n x k, k >= 2; e.g. the history vectors of a
+    run), with a margin for vectors it has not seen: the count is chosen on one half of the
+    columns and checked on the other (and the other way round); while the unseen half exceeds
+    ``MARGIN`` eps, the target tightens by 0.7. The error falls as more are kept, so each choice
+    is a bisection. A guarantee for vectors of the same kind as the tuning ones, not for any
+    vector: one with ||A x|| far below ||A|| ||x|| can have any relative error."""
+    if not eps > 0.0:
+        raise InvalidParameter(f"compression_error = {eps} must be > 0")
+    A = np.asarray(A)
+    n = A.shape[0]
+    X = np.asarray(vectors, dtype=np.float64).reshape(n, -1)
+    if X.shape[1] < 2:
+        raise InvalidParameter("compression_error: at least two tuning vectors are needed")
+    coeffs = transform(A, perm)
+    norm = float(np.linalg.norm(A))
+    ref = A @ X
+    ref_norm = np.maximum(np.linalg.norm(ref, axis=0), 1e-300)
+    Xh = haar(np.pad(X[perm], ((0, coeffs.shape[0] - n), (0, 0))), axis=0)  # W P x, once
+    order = np.argsort(np.abs(coeffs).ravel())[::-1]
+    rows, cols = np.divmod(order, coeffs.shape[0])
+
+    full = coeffs @ Xh  # C W P x: the kept part is subtracted from it
+
+    def errors(keep: int, cols_x: np.ndarray) -> np.ndarray:
+        """Relative matvec errors of the ``keep`` largest coefficients on the columns cols_x:
+        ||W^T (C - C_keep) W P x|| = ||C W P x - C_keep W P x|| by orthonormality."""
+        r, c = rows[:keep], cols[:keep]
+        kept = sp.csr_matrix((coeffs[r, c], (r, c)), shape=coeffs.shape)
+        return np.linalg.norm(full[:, cols_x] - kept @ Xh[:, cols_x], axis=0) / ref_norm[cols_x]
+
+    def fewest(target: float, cols_x: np.ndarray) -> int:
+        lo, hi = 1, int(np.count_nonzero(coeffs)) or 1
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if errors(mid, cols_x).max() <= target:
+                hi = mid
+            else:
+                lo = mid + 1
+        return hi
+
+    halves = (np.arange(0, X.shape[1], 2), np.arange(1, X.shape[1], 2))
+    target, keep = eps, coeffs.size
+    for _ in range(20):
+        keep = max(fewest(target, h) for h in halves)
+        if all(errors(fewest(target, a), b).max() <= MARGIN * eps for a, b in (halves, halves[::-1])):
+            break
+        target *= 0.7
+    keep = max(keep, fewest(eps, np.arange(X.shape[1])))
+    return _from_coefficients(coeffs, n, perm, keep, norm)
