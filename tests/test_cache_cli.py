@@ -218,11 +218,11 @@ def test_cli_clear_filters(tmp_path: pathlib.Path) -> None:
     size = a.stat().st_size
     res = _cli(tmp_path, "clear", "--older-than", "2")
     assert res.returncode == 0, res.stderr
-    assert "removed 1 entries" in res.stdout and f"({size} bytes)" in res.stdout
+    assert "removed 1 entry" in res.stdout and f"({size} bytes)" in res.stdout
     assert not a.exists() and b.exists() and c.exists() and other.exists()
     size = other.stat().st_size
     res = _cli(tmp_path, "clear", "--kind", "pbd_model")
-    assert res.returncode == 0 and "removed 1 entries" in res.stdout and f"({size} bytes)" in res.stdout
+    assert res.returncode == 0 and "removed 1 entry" in res.stdout and f"({size} bytes)" in res.stdout
     assert not other.exists() and b.exists() and c.exists()
     res = _cli(tmp_path, "clear", "--older-than", "-1")
     assert res.returncode == 2 and "--older-than" in res.stderr and b.exists()

@@ -133,3 +133,20 @@ def test_a_uv_seam_survives_merging_its_vertices(tmp_path: Path) -> None:
     world.run(1, out=out, progress=False)
     st, _ = _written_st(out, "/World/box")
     np.testing.assert_allclose(st.reshape(-1, 2), corner_uv, atol=1e-6)
+
+
+def test_vertex_colours_of_a_mesh_file_reach_the_usd(tmp_path: Path) -> None:
+    sphere = trimesh.creation.icosphere(subdivisions=1, radius=0.1)
+    rgba = (np.random.default_rng(4).random((len(sphere.vertices), 4)) * 255).astype(np.uint8)
+    sphere.visual.vertex_colors = rgba
+    sphere.export(tmp_path / "painted.ply")
+    mesh = wsim.mesh.load(tmp_path / "painted.ply")
+    world = wsim.World(fps=30, device="cpu")
+    world.add(wsim.PbdBody(mesh, name="painted", position=(0, 1, 0)))
+    out = tmp_path / "painted.usda"
+    world.run(1, out=out, progress=False)
+    stage = Usd.Stage.Open(str(out))
+    dc = UsdGeom.Mesh(stage.GetPrimAtPath("/World/painted")).GetDisplayColorPrimvar()
+    assert dc.GetInterpolation() == UsdGeom.Tokens.faceVarying
+    want = rgba[:, :3][np.asarray(mesh.faces)].reshape(-1, 3) / 255.0
+    np.testing.assert_allclose(np.asarray(dc.Get()), want, atol=1e-6)

@@ -59,8 +59,15 @@ if TYPE_CHECKING:
 
 def __getattr__(name: str) -> Any:
     module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'wsim' has no attribute '{name}'")
+    if module is None:  # a subpackage or module: wsim.mesh, wsim.bem, ...
+        try:
+            value = importlib.import_module(f"wsim.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name != f"wsim.{name}":
+                raise
+            raise AttributeError(f"module 'wsim' has no attribute '{name}'") from None
+        globals()[name] = value
+        return value
     value = getattr(importlib.import_module(module), name)
     globals()[name] = value
     return value

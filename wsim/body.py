@@ -39,7 +39,9 @@ class Body(ABC):
     """Base class of simulated bodies.
 
     ``face_uv``: (M, 3, 2) texture coordinates at the corners of ``faces`` (from the input mesh,
-    ``wsim.mesh.face_uvs``), written to the USD output as ``primvars:st``; None without them.
+    ``wsim.mesh.face_uvs``), written to the USD output as ``primvars:st``; ``face_color``: (M, 3, 3)
+    the input's vertex colours per corner (``wsim.mesh.face_colors``), written as a faceVarying
+    ``primvars:displayColor`` in place of the body's single colour; None without them.
 
     Args:
         name: the body's name (its USD prim is /World/<name>); unique within a World.
@@ -48,6 +50,7 @@ class Body(ABC):
     """
 
     face_uv: np.ndarray | None = None
+    face_color: np.ndarray | None = None
 
     def __init__(
         self,
@@ -148,6 +151,10 @@ class Body(ABC):
     @abstractmethod
     def advance(self, t0: float, t1: float) -> None:
         """Advance the state from time t0 to t1 [s] (one frame)."""
+
+    def check_frames(self, last: int, fps: float) -> None:
+        """Raise before a run if this body cannot be stepped up to World frame ``last`` (at ``fps``);
+        most bodies can step forever (a reconstruction covers its recording's frames only)."""
 
     @abstractmethod
     def points(self) -> np.ndarray:

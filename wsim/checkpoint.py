@@ -27,7 +27,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from wsim.errors import CheckpointError, OutputError
+from wsim.errors import CheckpointError
+from wsim.validate import output_folder
 
 if TYPE_CHECKING:
     from wsim.world import World
@@ -59,9 +60,7 @@ def save(world: World, path: str | os.PathLike) -> Path:
     import wsim
 
     p = Path(path).expanduser()
-    folder = p.parent if str(p.parent) else Path(".")
-    if p.is_dir() or not folder.is_dir():
-        raise OutputError(f"checkpoint '{p}': {'is a directory' if p.is_dir() else f'the folder {folder} does not exist'}")
+    folder = output_folder(p, "checkpoint")
     world._bind()
     fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=folder)
     os.close(fd)

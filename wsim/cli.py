@@ -59,7 +59,10 @@ def _run(build: Callable[..., object], frames_default: int, name: str, args: arg
     out = args.out or f"{name}.usdc"
     before = _mtime(out)
 
+    terminated = []
+
     def on_sigterm(signum: int, frame: object) -> None:
+        terminated.append(signum)
         raise KeyboardInterrupt  # unwinds through World.run, which saves the frames so far
 
     signal.signal(signal.SIGTERM, on_sigterm)
@@ -110,7 +113,7 @@ def _run(build: Callable[..., object], frames_default: int, name: str, args: arg
         print(f"wsim: {reason}", file=sys.stderr)
         if _mtime(out) != before:  # this run wrote it
             print(f"wsim: frames computed before that are in {out}", file=sys.stderr)
-        return 1 if isinstance(exc, WsimError) else 130
+        return 1 if isinstance(exc, WsimError) else 128 + (terminated[0] if terminated else signal.SIGINT)
     print(summary)
     if args.resume is not None:
         print(resumed)
@@ -127,7 +130,7 @@ def _mtime(path: str) -> int | None:
 def _load_scene(path: str) -> tuple[Callable[..., object], int, str]:
     p = Path(path)
     if not p.is_file():
-        raise SystemExit(f"wsim: scene file '{path}' not found")
+        raise SystemExit(f"wsim: error: scene file '{path}' not found")
     ns = runpy.run_path(str(p), run_name="wsim_scene")
     build = ns.get("build")
     if not callable(build):
@@ -151,8 +154,12 @@ def info() -> str:
         f"cache: {default_cache_dir()}",
     ]
     entries = cache_entries()
-    lines.append(f"cache size: {len(entries)} entries, {_mb(sum(e.size for e in entries))} (cap {_cap_text()})")
+    lines.append(f"cache size: {_entries(len(entries))}, {_mb(sum(e.size for e in entries))} (cap {_cap_text()})")
     return "\n".join(lines)
+
+
+def _entries(n: int) -> str:
+    return f"{n} entr{'y' if n == 1 else 'ies'}"
 
 
 def _mb(nbytes: int) -> str:
@@ -177,8 +184,12 @@ def _cache(args: argparse.Namespace) -> int:
         if args.older_than is not None and not args.older_than >= 0:
             print(f"wsim: --older-than = {args.older_than} must be >= 0 (days)", file=sys.stderr)
             return 2
+        if args.kind is not None and not any(e.kind == args.kind for e in cache_entries(folder)):
+            kinds = sorted({e.kind for e in cache_entries(folder)})
+            print(f"wsim: no entries of kind '{args.kind}' in {folder}" + (f" (kinds: {', '.join(kinds)})" if kinds else ""))
+            return 0
         done = clear_cache(folder, kind=args.kind, older_than_days=args.older_than)
-        msg = f"wsim: removed {done.removed} entries from {folder}, freed {_mb(done.freed)} ({done.freed} bytes)"
+        msg = f"wsim: removed {_entries(done.removed)} from {folder}, freed {_mb(done.freed)} ({done.freed} bytes)"
         if done.skipped:
             msg += f"; {done.skipped} could not be deleted"
         print(msg)
@@ -198,7 +209,7 @@ def _cache(args: argparse.Namespace) -> int:
     for e in entries:
         used = datetime.fromtimestamp(e.last_used).strftime("%Y-%m-%d %H:%M")
         print(f"{e.kind:<{width}}  {e.key_prefix[:16]}  {e.size / 1e6:>9.1f}  {used}")
-    print(f"total: {len(entries)} entries, {_mb(total)} ({total} bytes)")
+    print(f"total: {_entries(len(entries))}, {_mb(total)} ({total} bytes)")
     return 0
 
 

@@ -97,8 +97,10 @@ def compile_notice(enabled: bool = True, stream: IO[str] | None = None, poll: fl
     def watch() -> None:
         while not stop.wait(poll):
             if stamp() != start:
-                print("wsim: compiling Warp kernels (first use on this machine or after an update: seconds to a "
-                      "minute; cached for later runs)", file=stream or sys.stderr, flush=True)
+                from tqdm import tqdm  # write() clears and redraws a progress bar on that stream
+
+                tqdm.write("wsim: compiling Warp kernels (first use on this machine or after an update: seconds to a "
+                           "minute; cached for later runs)", file=stream or sys.stderr)
                 return
 
     thread = threading.Thread(target=watch, name="wsim-compile-notice", daemon=True)

@@ -13,7 +13,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from wsim.errors import InvalidParameter
-from wsim.validate import callback_array
+from wsim.validate import call_user, callback_array
 
 
 class Handle:
@@ -44,7 +44,7 @@ class Handle:
         passes ``body 'neck': handle 'tip' (handles[0]) motion``) and ``frame`` is the World frame
         being computed, so a bad motion is reported with the body, the frame and the time."""
         what = what or f"handle '{self.name}' motion"
-        a = callback_array(self.motion(t), ((4, 4), rest.shape), what, t, frame)
+        a = callback_array(call_user(self.motion, t, what, frame), ((4, 4), rest.shape), what, t, frame)
         return rest @ a[:3, :3].T + a[:3, 3] if a.shape == (4, 4) else a
 
 

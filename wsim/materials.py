@@ -50,7 +50,10 @@ class ElasticMaterial:
         incompressible: bool = False,
         name: str = "material",
     ) -> None:
-        E_f, nu_f, rho_f = _checked(f"material '{name}'", E, nu, rho, mu, incompressible)
+        # the default name says nothing: name the constructor (a body cannot be named here, it does
+        # not exist yet; a dict material given to a body is checked with the body's name)
+        E_f, nu_f, rho_f = _checked("ElasticMaterial" if name == "material" else f"material '{name}'",
+                                    E, nu, rho, mu, incompressible)
         object.__setattr__(self, "E", E_f)
         object.__setattr__(self, "nu", nu_f)
         object.__setattr__(self, "rho", rho_f)

@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from wsim.errors import InvalidParameter, OutputError, WsimError
+from wsim.validate import output_folder
 
 FORMATS = (".png", ".gif", ".mp4")
 DEFAULT_TILES = 6
@@ -111,9 +112,7 @@ def render(usd: str | os.PathLike, out: str | os.PathLike, frames: int | None = 
         w, h = parse_size(f"{int(w)}x{int(h)}")
     if ext == ".mp4":
         w, h = w - w % 2, h - h % 2  # H.264 (yuv420p) needs even sizes
-    folder = out.parent if str(out.parent) else Path(".")
-    if not folder.is_dir():
-        raise OutputError(f"output '{out}': folder '{folder}' does not exist")
+    output_folder(out)
     try:
         import matplotlib
 

@@ -4,7 +4,8 @@ Layout of a written stage (default prim ``/World``):
 
 - ``/World/<body>``: Mesh; topology (faceVertexCounts/Indices), ``displayColor`` (the body's
   ``display_color``, else a palette colour) and the input model's texture coordinates
-  (``primvars:st``, faceVarying, when it has them: ``Body.face_uv``) written once; ``points``, ``extent``,
+  (``primvars:st``, faceVarying, when it has them: ``Body.face_uv``) and vertex colours (a
+  faceVarying ``displayColor``: ``Body.face_color``) written once; ``points``, ``extent``,
   ``velocities`` and vertex ``normals`` (area-weighted, for smooth shading) time-sampled per
   frame; ``subdivisionScheme = none`` so DCC tools show the simulated polygons instead of a
   Catmull-Clark limit surface.
@@ -56,6 +57,7 @@ from typing import TYPE_CHECKING, Iterator, Sequence
 import numpy as np
 
 from wsim.errors import InvalidParameter, OutputError
+from wsim.validate import output_folder
 
 if TYPE_CHECKING:
     from wsim.body import Body
@@ -96,12 +98,7 @@ def check_output_path(path: str | os.PathLike) -> Path:
         raise OutputError(f"output '{p}' is a directory")
     if p.suffix.lower() not in USD_EXTENSIONS:
         raise OutputError(f"output '{p}': the extension must be one of {', '.join(USD_EXTENSIONS)}")
-    folder = p.parent if str(p.parent) else Path(".")
-    if not folder.is_dir():
-        up = next((a for a in folder.parents if a.exists()), None) if not folder.exists() else folder
-        if up is not None and up.exists() and not up.is_dir():
-            raise OutputError(f"output '{p}': '{up}' is a file, not a folder")
-        raise OutputError(f"output '{p}': the folder '{folder}' does not exist")
+    folder = output_folder(p)
     journal = journal_path(p)
     if journal.exists():
         raise OutputError(f"output '{p}': '{journal}' holds the frames of an interrupted run; write them with "
@@ -356,6 +353,11 @@ class UsdWriter:
             self._meshes[path].SetNormalsInterpolation(UsdGeom.Tokens.vertex)
             self._bodies[path] = body
             self._faces[path] = np.asarray(body.faces, dtype=np.int64)
+            rgb = getattr(body, "face_color", None)
+            if rgb is not None and len(rgb) == len(body.faces) and getattr(body, "display_color", None) is None:
+                dc = self._meshes[path].GetDisplayColorPrimvar()  # the input model's colours, per corner
+                dc.SetInterpolation(UsdGeom.Tokens.faceVarying)
+                dc.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(rgb, dtype=np.float32).reshape(-1, 3)))
             uv = getattr(body, "face_uv", None)
             if uv is not None and len(uv) == len(body.faces):  # the input model's UVs, per face corner
                 st = UsdGeom.PrimvarsAPI(self._meshes[path].GetPrim()).CreatePrimvar(

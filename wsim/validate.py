@@ -7,6 +7,7 @@ quantity, so a scene script says exactly what to fix.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
@@ -81,3 +82,31 @@ def callback_array(value: object, shapes: Sequence[tuple[int, ...]], what: str, 
         raise error(f"{what} at t = {t:.6g} s is not finite: {int(bad.sum())} non-finite values{example}{where}")
     return a
 
+
+def output_folder(path: Path, what: str = "output") -> Path:
+    """The folder a file ``path`` will be written in, or ``OutputError`` naming ``what`` and the
+    path: the path is a folder, a part of it is a file, or the folder does not exist."""
+    from wsim.errors import OutputError
+
+    if path.is_dir():
+        raise OutputError(f"{what} '{path}' is a directory")
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        up = folder if folder.exists() else next((a for a in folder.parents if a.exists()), None)
+        if up is not None and not up.is_dir():
+            raise OutputError(f"{what} '{path}': '{up}' is a file, not a folder")
+        raise OutputError(f"{what} '{path}': the folder '{folder}' does not exist")
+    return folder
+
+
+def call_user(fn: object, t: float, what: str, frame: int | None = None) -> object:
+    """``fn(t)`` for a user's function of time; an exception it raises comes back as
+    ``InvalidParameter`` naming ``what`` (the body and the quantity), t and the World ``frame``,
+    with the user's exception chained (its traceback stays visible)."""
+    try:
+        return fn(t)  # type: ignore[operator]
+    except WsimError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - any error of user code, reported with its context
+        where = "" if frame is None else f"; in frame {frame}"
+        raise InvalidParameter(f"{what} at t = {t:.6g} s raised {type(exc).__name__}: {exc}{where}") from exc

@@ -25,7 +25,7 @@ import numpy as np
 
 from wsim import constraints as wc
 from wsim.body import Body
-from wsim.validate import as_vec3, finite_number, positive_int
+from wsim.validate import as_vec3, finite_number, output_folder, positive_int
 from wsim.colliders import Collider, Surfaces
 from wsim.device import resolve_device
 from wsim.errors import InvalidParameter
@@ -355,8 +355,9 @@ class World:
             from wsim import checkpoint as ckpt
 
             ckpt_path = Path(checkpoint).expanduser()
-            if ckpt_path.is_dir() or not (ckpt_path.parent if str(ckpt_path.parent) else Path(".")).is_dir():
-                raise InvalidParameter(f"World.run: checkpoint '{ckpt_path}' is a folder or its folder does not exist")
+            output_folder(ckpt_path, "World.run: checkpoint")
+        for body in self.bodies:  # before any frame: a run that cannot finish should not start
+            body.check_frames(self.frame + frames, self.fps)
         self._bind()
         start = _time.perf_counter()
         done = 0

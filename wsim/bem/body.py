@@ -42,7 +42,7 @@ from wsim.cache import OperatorCache
 from wsim.colliders import Surfaces
 from wsim.errors import InvalidParameter, SimulationDiverged
 from wsim.materials import ElasticMaterial, body_material
-from wsim.validate import as_rotation, as_vec3, callback_array, finite_number, positive_int
+from wsim.validate import as_rotation, as_vec3, call_user, callback_array, finite_number, positive_int
 
 TractionFn = Callable[[float], Any]
 STAGES = ("history", "loads", "solve", "collision", "constraints", "correction", "frame")
@@ -123,6 +123,10 @@ class BemBody(VertexImpulses, Body):
         n_max: history length override.
         operators: a prebuilt :class:`~wsim.bem.BemOperators` for this mesh (skips the build).
         matvec: "auto" (Warp on CUDA, BLAS on CPU), "warp" or "blas" (CPU only).
+        compression: keep 1 / CR of the Haar coefficients of H_k, G_k (k >= 1) and H_0^-1 (the
+            paper's compression ratio CR >= 1; ``wsim.bem.compression``); CPU device for now.
+        compression_error: instead, per matrix the fewest coefficients whose relative matvec error
+            stays below this on smooth surface fields (``compression.choose_keep``).
         divergence_limit: |u| [m] beyond which the step stops with ``SimulationDiverged``
             (default: the surface diameter; linear elasticity is meaningless past it).
         growth_check: stop with ``SimulationDiverged`` when the displacement of an unloaded body
@@ -170,6 +174,8 @@ class BemBody(VertexImpulses, Body):
         n_max: int | None = None,
         operators: BemOperators | None = None,
         matvec: str = "auto",
+        compression: float | None = None,
+        compression_error: float | None = None,
         divergence_limit: float | None = None,
         growth_check: bool = True,
         cache: bool | OperatorCache = True,
@@ -192,10 +198,24 @@ class BemBody(VertexImpulses, Body):
         precision = "float32" if precision is None else precision
         if precision not in PRECISIONS:
             raise InvalidParameter(f"body '{name}': precision = {precision!r} must be one of {', '.join(PRECISIONS)}")
+        self._compression: tuple[str, float] | None = None
+        if compression is not None and compression_error is not None:
+            raise InvalidParameter(f"body '{name}': give compression (a ratio) or compression_error, not both")
+        if compression is not None:
+            cr = finite_number(compression, f"body '{name}': compression ratio")
+            if cr < 1.0:
+                raise InvalidParameter(f"body '{name}': compression ratio {cr} must be >= 1 (1: lossless)")
+            self._compression = ("ratio", cr)
+        elif compression_error is not None:
+            eps = finite_number(compression_error, f"body '{name}': compression_error")
+            if not 0.0 < eps < 1.0:
+                raise InvalidParameter(f"body '{name}': compression_error {eps} must lie in (0, 1)")
+            self._compression = ("error", eps)
         if matvec not in stepper.BACKENDS:
             raise InvalidParameter(f"body '{name}': matvec = {matvec!r} must be one of {', '.join(stepper.BACKENDS)}")
         vertices, faces = wmesh.surface_arrays(mesh, f"body '{name}'", merge_vertices=merge_vertices)
         self.face_uv = wmesh.face_uvs(mesh)  # carried to the USD output (faces keep their order)
+        self.face_color = wmesh.face_colors(mesh)
         # validates (closed, one piece, oriented, non-degenerate) before anything is built
         surface = prepare_surface(vertices, faces, double_nodes=double_nodes, name=f"body '{name}'",
                                   fixes=("merge_vertices",))
@@ -386,7 +406,7 @@ class BemBody(VertexImpulses, Body):
             else:
                 what = f"body '{self.name}': traction load {k} (add_traction fn(t), tractions [Pa])"
                 k += 1
-            value = callback_array(fn(t), shapes, what, t, self._frame_of(t))
+            value = callback_array(call_user(fn, t, what, self._frame_of(t)), shapes, what, t, self._frame_of(t))
             p += value[self._surface.vertex] if value.shape == (n_vertices, 3) else value
         return p.reshape(-1)
 
@@ -396,7 +416,11 @@ class BemBody(VertexImpulses, Body):
             self._ops = build_operators(self._mesh, self.material, self.dt, device=device, **self._build_args)
         ops = self._ops
         self._device = device
-        self._so = so = stepper.step_operators(ops, device, stepper.resolve_backend(self.matvec, device))
+        backend = stepper.resolve_backend(self.matvec, device)
+        if self._compression is not None and backend != "blas":
+            raise InvalidParameter(f"body '{self.name}': compressed operators run on the CPU device for now "
+                                   f"(device '{device.alias}'); their GPU kernels are the next step")
+        self._so = so = stepper.step_operators(ops, device, backend, self._compression)
         self._gravity = np.asarray(gravity, dtype=np.float64)
         self._inertia = ops.inertia
         self._inertia_inv = np.linalg.inv(ops.inertia)
@@ -560,7 +584,9 @@ class BemBody(VertexImpulses, Body):
         nodes = []
         held = np.zeros(len(V), dtype=bool)
         for handle, (ids, nd, target, row) in self._fixed.items():
-            tgt = self._check_targets(target(t), len(ids), t, handle) if callable(target) else target
+            tgt = (self._check_targets(call_user(target, t, f"body '{self.name}': fix() handle {handle} target fn(t)",
+                                                 self._frame_of(t)), len(ids), t, handle)
+                   if callable(target) else target)
             points.add(wc.FIXED, np.zeros((len(nd), 3)), np.zeros(len(nd)), tgt[row], 0.0)
             nodes.append(nd)
             held[nd] = True

@@ -316,3 +316,102 @@ def choose_keep(A: np.ndarray, perm: np.ndarray, eps: float, vectors: np.ndarray
         target *= 0.7
     keep = max(keep, fewest(eps, np.arange(X.shape[1])))
     return _from_coefficients(coeffs, n, perm, keep, norm)
+
+
+def smooth_fields(nodes: np.ndarray, k: int, seed: int = 0) -> np.ndarray:
+    """k smooth vector fields on the nodes (3N x k, node-major x, y, z): random combinations of
+    low-order polynomials and long waves of the positions, per component; what displacement and
+    traction histories look like away from wavefronts (the tuning vectors of ``compression_error``)."""
+    x = np.asarray(nodes, dtype=np.float64)
+    x = (x - x.mean(0)) / max(np.ptp(x, axis=0).max(), 1e-300)
+    basis = [np.ones(len(x)), *x.T, *(x.T ** 2), x[:, 0] * x[:, 1], x[:, 1] * x[:, 2], x[:, 0] * x[:, 2],
+             *np.sin(3.0 * x.T), *np.cos(3.0 * x.T)]
+    B = np.stack(basis, axis=1)
+    rng = np.random.default_rng(seed)
+    return np.stack([(B @ rng.standard_normal((B.shape[1], 3))).ravel() for _ in range(k)], axis=1)
+
+
+@dataclass(frozen=True)
+class CompressedHistory:
+    """H_k, G_k (k = 1..n_max) and H_0^-1 of an operator set, compressed with one permutation
+    (v+c), and the products of a step in the wavelet domain: the history h = sum_k G_k p_(n-k) -
+    H_k u_(n-k) transforms the ring's vectors once (all slots in one pass), sums the sparse
+    products and transforms back once. H_0^-1 G' stays dense (the constraint solver reads its
+    entries). ``spec``: how it was made (ratio or error)."""
+
+    perm: np.ndarray
+    H: tuple[CompressedMatrix, ...]
+    G: tuple[CompressedMatrix, ...]
+    H0_inv: CompressedMatrix
+    spec: str
+
+    @property
+    def n(self) -> int:
+        return self.H0_inv.n
+
+    @property
+    def size(self) -> int:
+        return self.H0_inv.size
+
+    @property
+    def matrices(self) -> tuple[CompressedMatrix, ...]:
+        return (*self.H, *self.G, self.H0_inv)
+
+    @property
+    def nbytes(self) -> int:
+        return int(sum(m.nbytes for m in self.matrices) - (len(self.matrices) - 1) * self.perm.nbytes)
+
+    @property
+    def ratio(self) -> float:
+        """Entries of the dense matrices over coefficients kept, over all of them."""
+        return len(self.matrices) * self.n * self.n / max(sum(m.kept for m in self.matrices), 1)
+
+    def _forward(self, X: np.ndarray) -> np.ndarray:
+        """W P x for the columns of X (n x k)."""
+        Xp = np.zeros((self.size, X.shape[1]))
+        Xp[: self.n] = X[self.perm]
+        return haar(Xp, axis=0)
+
+    def _back(self, y_hat: np.ndarray) -> np.ndarray:
+        yp = inverse_haar(y_hat, axis=0)[: self.n]
+        y = np.empty_like(yp)
+        y[self.perm] = yp
+        return y
+
+    def history(self, U: np.ndarray, P: np.ndarray, step: int) -> np.ndarray:
+        """sum_k G_k P[(step - k) % n_max] - H_k U[(step - k) % n_max] (rows of U, P: the rings,
+        at least n long)."""
+        n_max = len(self.H)
+        n = self.n
+        U_hat = self._forward(np.asarray(U, dtype=np.float64)[:, :n].T)
+        P_hat = self._forward(np.asarray(P, dtype=np.float64)[:, :n].T)
+        acc = np.zeros(self.size)
+        for k in range(1, n_max + 1):
+            s = (step - k) % n_max
+            acc += self.G[k - 1].C @ P_hat[:, s]
+            acc -= self.H[k - 1].C @ U_hat[:, s]
+        return self._back(acc)
+
+
+def compress_history(ops, ratio: float | None = None, error: float | None = None,
+                     vectors: np.ndarray | None = None) -> CompressedHistory:
+    """Compress ``ops``' (``BemOperators``) H_k, G_k (k >= 1) and H_0^-1 with the v+c ordering:
+    at one compression ``ratio`` (the paper's CR), or each with the fewest coefficients whose
+    relative matvec error stays below ``error`` on ``vectors`` (default: 32 ``smooth_fields``)."""
+    if (ratio is None) == (error is None):
+        raise InvalidParameter("give exactly one of compression (a ratio CR >= 1) or compression_error (eps > 0)")
+    s = ops.surface
+    perm = permutation(s.n_nodes, "v+c", node_order(s.nodes, s.faces, s.vertex))
+    if error is not None:
+        X = smooth_fields(s.nodes, 32, seed=0) if vectors is None else vectors
+
+        def one(A: np.ndarray) -> CompressedMatrix:
+            return choose_keep(np.asarray(A, dtype=np.float64), perm, error, X)
+        spec = f"error={error:g}"
+    else:
+        def one(A: np.ndarray) -> CompressedMatrix:
+            return compress(np.asarray(A, dtype=np.float64), perm, ratio=ratio)
+        spec = f"ratio={ratio:g}"
+    n_max = ops.n_max
+    return CompressedHistory(perm=perm, H=tuple(one(ops.H[k]) for k in range(1, n_max + 1)),
+                             G=tuple(one(ops.G[k]) for k in range(1, n_max + 1)), H0_inv=one(ops.H0_inv), spec=spec)

@@ -14,6 +14,10 @@ Two backends compute the passes (``history`` and ``solve``):
 
 ``"auto"`` picks Warp on CUDA and BLAS on the CPU, where Warp's kernels run on one thread and
 numpy's BLAS uses every core (``tools/bench_bem_step.py`` measures both: 7x on 2 cores).
+
+With a ``CompressedHistory`` (``wsim.bem.compression``; CPU device for now) the history and
+H_0^-1 h products run on the kept Haar coefficients instead, and H_k, G_k, H_0^-1 are not
+uploaded; H_0^-1 G' stays dense (the constraint solver reads its entries).
 """
 
 from __future__ import annotations
@@ -54,6 +58,7 @@ class StepOperators:
     H0_inv_Gp: wp.array
     E: np.ndarray  # (3N, 6) [H_0^-1 D_0, H_0^-1 Q_0], float64: re-solves for changed a, alpha
     vec4: dict[str, wp.array]  # Warp backend: vec4 views of H, G, H0_inv, H0_inv_Gp
+    compressed: Any = None  # a CompressedHistory: H, G, H0_inv are then empty placeholders
 
     @cached_property
     def correction(self) -> Correction:
@@ -71,13 +76,16 @@ class StepOperators:
 
     @property
     def history_bytes(self) -> int:
-        """Bytes the history pass reads: 2 n_max dense matrices and the small blocks."""
+        """Bytes the history pass reads: 2 n_max dense (or compressed) matrices and the small blocks."""
+        if self.compressed is not None:
+            return int(sum(m.nbytes for m in (*self.compressed.H, *self.compressed.G)) + self.DQ.capacity)
         return int(self.H.capacity + self.G.capacity + self.DQ.capacity)
 
     @property
     def matrix_bytes(self) -> int:
-        """Bytes a step with tractions reads: 2 n_max + 2 dense matrices (and the small blocks)."""
-        return self.history_bytes + int(self.H0_inv.capacity + self.H0_inv_Gp.capacity)
+        """Bytes a step with tractions reads: 2 n_max + 2 dense (or compressed) matrices and the small blocks."""
+        h0 = self.compressed.H0_inv.nbytes if self.compressed is not None else self.H0_inv.capacity
+        return self.history_bytes + int(h0 + self.H0_inv_Gp.capacity)
 
     def vectors(self, rows: int | None = None) -> wp.array:
         """Zeroed storage for ``rows`` vectors (or one) of length ``pitch`` on the device."""
@@ -109,12 +117,17 @@ def _upload_padded(a: np.ndarray, dtype: Any, wdt: Any, pitch: int, device: wp.D
 _SHARED: weakref.WeakValueDictionary = weakref.WeakValueDictionary()
 
 
-def step_operators(ops: BemOperators, device: wp.Device, backend: str) -> StepOperators:
-    """The (shared) device copy of ``ops`` for ``device`` and a resolved ``backend``."""
-    key = (ops.key or f"id{id(ops)}", device.alias, backend)  # the content key covers precision and inputs
+def step_operators(ops: BemOperators, device: wp.Device, backend: str,
+                   compression: tuple[str, float] | None = None) -> StepOperators:
+    """The (shared) device copy of ``ops`` for ``device`` and a resolved ``backend``; with
+    ``compression`` (("ratio", CR) or ("error", eps)) the history matrices compressed
+    (``wsim.bem.compression.compress_history``; the BLAS backend, CPU)."""
+    key = (ops.key or f"id{id(ops)}", device.alias, backend, compression)  # the content key covers precision and inputs
     found = _SHARED.get(key)
     if found is not None:
         return found
+    if compression is not None:
+        return _compressed_step_operators(ops, device, backend, compression, key)
     dtype = PRECISIONS[ops.precision]
     wdt = wp.float32 if dtype == np.float32 else wp.float64
     n3 = 3 * ops.n_nodes
@@ -141,6 +154,30 @@ def step_operators(ops: BemOperators, device: wp.Device, backend: str) -> StepOp
     return out
 
 
+def _compressed_step_operators(ops: BemOperators, device: wp.Device, backend: str, compression: tuple[str, float],
+                               key: tuple) -> StepOperators:
+    from wsim.bem.compression import compress_history
+
+    if backend != "blas":
+        raise InvalidParameter("compressed operators run on the CPU device for now (matvec 'blas'); their GPU "
+                               "kernels are the next step")
+    how, value = compression
+    ch = compress_history(ops, ratio=value if how == "ratio" else None, error=value if how == "error" else None)
+    dtype = PRECISIONS[ops.precision]
+    wdt = wp.float32 if dtype == np.float32 else wp.float64
+    n3 = 3 * ops.n_nodes
+    empty = wp.zeros((0, n3), dtype=wdt, device=device)
+    out = StepOperators(
+        operators=ops, device=device, backend=backend, dtype=wdt, pitch=n3,
+        H=wp.zeros((0, 0, n3), dtype=wdt, device=device), G=wp.zeros((0, 0, n3), dtype=wdt, device=device),
+        DQ=wp.array(np.concatenate([ops.D[1:], ops.Q[1:]], axis=2).astype(dtype), dtype=wdt, device=device),
+        H0_inv=empty, H0_inv_Gp=wp.array(np.ascontiguousarray(ops.H0_inv_Gp, dtype=dtype), dtype=wdt, device=device,
+                                          copy=False),
+        E=ops.solve_H0(np.hstack([ops.D[0], ops.Q[0]])), vec4={}, compressed=ch)
+    _SHARED[key] = out
+    return out
+
+
 def resolve_backend(backend: str, device: wp.Device) -> str:
     if backend not in BACKENDS:
         raise InvalidParameter(f"matvec = {backend!r} must be one of {', '.join(BACKENDS)}")
@@ -158,10 +195,17 @@ def history(so: StepOperators, U: wp.array, P: wp.array, B: wp.array, step: int,
         wp.launch_tiled(ks.history_matvec, dim=so.size, block_dim=int(ks.MATVEC_BLOCK), device=so.device,
                         inputs=[so.vec4["H"], so.vec4["G"], U, P, so.DQ, B, step, h])
         return
-    H, G, DQ = so.H.numpy(), so.G.numpy(), so.DQ.numpy()
+    DQ = so.DQ.numpy()
     Un, Pn, Bn = U.numpy(), P.numpy(), B.numpy()
-    out = np.zeros(so.size, dtype=Un.dtype)
     n_max = so.n_max
+    if so.compressed is not None:
+        out = so.compressed.history(Un, Pn, step)
+        for k in range(1, n_max + 1):
+            out += DQ[k - 1] @ Bn[(step - k) % n_max]
+        h.numpy()[: so.size] = out
+        return
+    H, G = so.H.numpy(), so.G.numpy()
+    out = np.zeros(so.size, dtype=Un.dtype)
     for k in range(1, n_max + 1):
         s = (step - k) % n_max
         out += G[k - 1] @ Pn[s]
@@ -177,7 +221,10 @@ def solve(so: StepOperators, p: wp.array | None, h: wp.array, u: wp.array) -> No
         wp.launch_tiled(ks.solve_matvec, dim=so.size, block_dim=int(ks.MATVEC_BLOCK), device=so.device,
                         inputs=[so.vec4["H0_inv_Gp"], so.vec4["H0_inv"], h if p is None else p, h, int(p is not None), u])
         return
-    out = so.H0_inv.numpy() @ h.numpy()
+    if so.compressed is not None:
+        out = so.compressed.H0_inv.matvec(h.numpy()[: so.size])
+    else:
+        out = so.H0_inv.numpy() @ h.numpy()
     if p is not None:
         out += so.H0_inv_Gp.numpy() @ p.numpy()
     u.numpy()[:] = out

@@ -63,7 +63,7 @@ from wsim.kernels.eol_grid import grid_struct
 from wsim.launch import Launcher
 from wsim.materials import ElasticMaterial, body_material
 from wsim.rigid import advance_pose, cross_matrix, rigid_fit
-from wsim.validate import as_rotation, as_vec3, callback_array, finite_number, positive_int
+from wsim.validate import as_rotation, as_vec3, call_user, callback_array, finite_number, positive_int
 
 if TYPE_CHECKING:
     from wsim.colliders import Collider
@@ -329,6 +329,7 @@ class EolBody(VertexImpulses, Body):
             raise InvalidParameter(f"{p}: damping must be >= 0 and mass_floor in [0, 1]")
         vertices, faces = wmesh.surface_arrays(mesh, p, merge_vertices=merge_vertices)
         self.face_uv = wmesh.face_uvs(mesh)  # carried to the USD output (faces keep their order)
+        self.face_color = wmesh.face_colors(mesh)
         wmesh.check_surface(vertices, faces, name=p, closed=True, one_piece=True, fixes=("merge_vertices",))
         self.grid = make_grid(vertices, resolution, padding)  # validates the resolution; grows with the body (_regrid)
         self.resolution = int(resolution)
@@ -629,7 +630,8 @@ class EolBody(VertexImpulses, Body):
         """The uniform body-force accelerations at t [m/s^2] (world)."""
         acc = np.zeros(3)
         for fn in self._accelerations:
-            acc += self._load_value(fn(t), (3,), "a body force (acceleration [m/s^2])", t)
+            acc += self._load_value(call_user(fn, t, f"body '{self.name}': a body force", self._frame_of(t, start=True)),
+                                    (3,), "a body force (acceleration [m/s^2])", t)
         return acc
 
     def _apply_loads(self, t: float) -> None:
@@ -641,7 +643,8 @@ class EolBody(VertexImpulses, Body):
         work = []
         if self._tractions:
             V = self._n_surface
-            tr = sum(self._load_value(fn(t), (V, 3), "a traction [Pa]", t) for fn in self._tractions)
+            tr = sum(self._load_value(call_user(fn, t, f"body '{self.name}': a traction", self._frame_of(t, start=True)),
+                                      (V, 3), "a traction [Pa]", t) for fn in self._tractions)
             work.append((self.state.y_vertices, self.vertex_areas()[:, None] * tr, 1))
         push = self._coupling_forces(t)
         if push is not None:  # forces as they are (no round trip through the vertex areas)

@@ -32,6 +32,7 @@ from wsim.mesh.stage import load_usd
 from wsim.mesh.surface import (
     display_name,
     face_areas,
+    face_colors,
     face_uvs,
     load,
     load_fitted,
@@ -50,6 +51,7 @@ __all__ = [
     "load",
     "load_usd",
     "display_name",
+    "face_colors",
     "face_uvs",
     "load_fitted",
     "signed_volume",

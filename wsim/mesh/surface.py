@@ -194,7 +194,12 @@ def vertex_areas(vertices: Any, faces: Any) -> np.ndarray:
 
 def load(path: str | os.PathLike, name: str | None = None) -> trimesh.Trimesh:
     """Load a surface mesh file (OBJ, PLY, STL, GLB, ...) as one triangle mesh, or InvalidMesh.
-    A USD file (``.usd/.usda/.usdc/.usdz``, optionally ``file.usd:/World/prim``) goes to ``load_usd``."""
+    A USD file (``.usd/.usda/.usdc/.usdz``, optionally ``file.usd:/World/prim``) goes to ``load_usd``.
+
+    Vertices at the same position are merged (``merge_coincident_vertices``), the texture
+    coordinates kept per face corner first (``face_uvs``): file formats split a vertex wherever
+    its UV or normal changes, which would leave a textured model open (not watertight) for every
+    method. Faces keep their order."""
     from wsim.mesh.stage import USD_SUFFIXES, load_usd, split_prim_path  # here: no import cycle
 
     file, prim = split_prim_path(path)
@@ -210,6 +215,14 @@ def load(path: str | os.PathLike, name: str | None = None) -> trimesh.Trimesh:
         raise InvalidMesh(f"mesh '{label}': cannot read '{p}': {exc}") from None
     if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
         raise InvalidMesh(f"mesh '{label}': '{p}' holds no triangles")
+    uv, color = face_uvs(m), face_colors(m)
+    v, f, merged = merge_coincident_vertices(m.vertices, m.faces)
+    if merged:
+        m = trimesh.Trimesh(v, f, process=False, metadata=dict(m.metadata))
+        if uv is not None:
+            m.metadata["wsim_face_uv"] = uv
+        if color is not None:
+            m.metadata["wsim_face_color"] = color
     m.metadata["wsim_source"] = str(p)
     return m
 
@@ -220,6 +233,23 @@ def display_name(mesh: Any, default: str) -> str:
     ``bunny``), else ``default`` (a scene's procedural shape)."""
     source = getattr(mesh, "metadata", {}).get("wsim_source") if isinstance(mesh, trimesh.Trimesh) else None
     return Path(source).stem if source else default
+
+
+def face_colors(mesh: Any) -> np.ndarray | None:
+    """(F, 3, 3) float32 RGB in [0, 1] at each face's corners, in face order, or None: a mesh file's
+    vertex colours (PLY, OBJ with colours, GLB: trimesh's ``visual.vertex_colors`` when its kind is
+    "vertex"), or ``metadata["wsim_face_color"]`` (kept across ``load``'s vertex merge)."""
+    if not isinstance(mesh, trimesh.Trimesh):
+        return None
+    c = mesh.metadata.get("wsim_face_color")
+    if c is not None:
+        c = np.asarray(c, dtype=np.float32)
+        return c if c.shape == (len(mesh.faces), 3, 3) else None
+    visual = mesh.visual
+    if getattr(visual, "kind", None) != "vertex":
+        return None
+    rgb = np.asarray(visual.vertex_colors, dtype=np.float32)[:, :3] / 255.0
+    return rgb[np.asarray(mesh.faces)] if len(rgb) == len(mesh.vertices) else None
 
 
 def face_uvs(mesh: Any) -> np.ndarray | None:

@@ -197,6 +197,7 @@ class PbdBody(Body):
         self.material = body_material(material, name, default=ElasticMaterial(E=1.0e5, nu=0.3, rho=1000.0))
         vertices, faces = wmesh.surface_arrays(mesh, name=f"body '{name}'", merge_vertices=merge_vertices)
         self.face_uv = wmesh.face_uvs(mesh)  # carried to the USD output (faces keep their order)
+        self.face_color = wmesh.face_colors(mesh)
         # A closed surface must be valid as one (watertight, consistently outward). An open surface
         # (or bare particles) is allowed only when nothing needs an enclosed volume: mass given,
         # no global volume constraint. Several pieces only when asked for (allow_pieces).

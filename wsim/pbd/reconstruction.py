@@ -248,6 +248,11 @@ class PbdReconstruction(Body):
             )
         return self._out
 
+    def check_frames(self, last: int, fps: float) -> None:
+        if abs(fps - self.fps) <= 1e-9 * self.fps and last > self.n_frames - 1:
+            raise InvalidParameter(f"reconstruction '{self.name}' covers frames 0..{self.n_frames - 1}; a run up to "
+                                   f"frame {last} was asked for (at most {self.n_frames - 1})")
+
     def advance(self, t0: float, t1: float) -> None:
         if abs((t1 - t0) * self.fps - 1.0) > 1e-6:
             raise InvalidParameter(
