@@ -235,21 +235,30 @@ def display_name(mesh: Any, default: str) -> str:
     return Path(source).stem if source else default
 
 
+def _per_corner(mesh: Any, key: str, per_vertex: Any, width: int) -> np.ndarray | None:
+    """(F, 3, width) float32 per face corner: ``mesh.metadata[key]`` if set (kept across ``load``'s
+    vertex merge, or set by the USD loader), else the per-vertex array ``per_vertex`` at the
+    faces' corners; None when neither fits the mesh."""
+    if not isinstance(mesh, trimesh.Trimesh):
+        return None
+    kept = mesh.metadata.get(key)
+    if kept is not None:
+        kept = np.asarray(kept, dtype=np.float32)
+        return kept if kept.shape == (len(mesh.faces), 3, width) else None
+    if per_vertex is None or len(per_vertex) != len(mesh.vertices):
+        return None
+    return np.asarray(per_vertex, dtype=np.float32)[np.asarray(mesh.faces)]
+
+
 def face_colors(mesh: Any) -> np.ndarray | None:
     """(F, 3, 3) float32 RGB in [0, 1] at each face's corners, in face order, or None: a mesh file's
     vertex colours (PLY, OBJ with colours, GLB: trimesh's ``visual.vertex_colors`` when its kind is
-    "vertex"), or ``metadata["wsim_face_color"]`` (kept across ``load``'s vertex merge)."""
-    if not isinstance(mesh, trimesh.Trimesh):
-        return None
-    c = mesh.metadata.get("wsim_face_color")
-    if c is not None:
-        c = np.asarray(c, dtype=np.float32)
-        return c if c.shape == (len(mesh.faces), 3, 3) else None
-    visual = mesh.visual
-    if getattr(visual, "kind", None) != "vertex":
-        return None
-    rgb = np.asarray(visual.vertex_colors, dtype=np.float32)[:, :3] / 255.0
-    return rgb[np.asarray(mesh.faces)] if len(rgb) == len(mesh.vertices) else None
+    "vertex"), or ``metadata["wsim_face_color"]``."""
+    visual = getattr(mesh, "visual", None)
+    rgb = None
+    if getattr(visual, "kind", None) == "vertex":
+        rgb = np.asarray(visual.vertex_colors, dtype=np.float32)[:, :3] / 255.0
+    return _per_corner(mesh, "wsim_face_color", rgb, 3)
 
 
 def face_uvs(mesh: Any) -> np.ndarray | None:
@@ -257,16 +266,7 @@ def face_uvs(mesh: Any) -> np.ndarray | None:
     None when the mesh has none: ``metadata["wsim_face_uv"]`` (set by the USD loader), else
     trimesh's per-vertex ``visual.uv`` (OBJ, GLB, PLY files with texture coordinates). Per corner,
     so a UV seam survives merging the seam's vertices (``merge_vertices=True``)."""
-    if not isinstance(mesh, trimesh.Trimesh):
-        return None
-    uv = mesh.metadata.get("wsim_face_uv")
-    if uv is not None:
-        uv = np.asarray(uv, dtype=np.float32)
-        return uv if uv.shape == (len(mesh.faces), 3, 2) else None
-    per_vertex = getattr(mesh.visual, "uv", None)
-    if per_vertex is None or len(per_vertex) != len(mesh.vertices):
-        return None
-    return np.asarray(per_vertex, dtype=np.float32)[np.asarray(mesh.faces)]
+    return _per_corner(mesh, "wsim_face_uv", getattr(getattr(mesh, "visual", None), "uv", None), 2)
 
 
 #: ``wsim run --mesh-scale S`` sets this: scenes then use a ``--mesh`` model in its own units times S
