@@ -40,20 +40,26 @@ def _cli(*args: str, cwd: Path = ROOT) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "wsim", *args], cwd=cwd, capture_output=True, text=True, timeout=600)
 
 
-def test_a_killed_run_leaves_every_written_frame_in_its_journal(tmp_path: Path) -> None:
-    """SIGKILL while frame 6 is being made (after frames 0-5 were written): ``wsim recover``
-    writes frames 0-5, the same points and paddle poses as an uninterrupted run's."""
-    out = tmp_path / "killed.usdc"
+def _killed_run(out: Path, at: int, frames: int, extra: str = "") -> subprocess.CompletedProcess:
+    """The default scene run to ``out`` in a fresh process that SIGKILLs itself while frame ``at``
+    is being made (``on_frame`` runs before the frame is written): frames 0..at-1 were written."""
     script = textwrap.dedent(f"""
         import os, signal, sys
         sys.path.insert(0, {str(ROOT / 'scenes')!r})
         import soft_drop
         def kill(world):
-            if world.frame == 6:
+            if world.frame == {at}:
                 os.kill(os.getpid(), signal.SIGKILL)
-        soft_drop.build(device="cpu").run(20, out={str(out)!r}, progress=False, on_frame=kill)
+        soft_drop.build(device="cpu").run({frames}, out={str(out)!r}, progress=False, on_frame=kill{extra})
     """)
-    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600)
+    return subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600)
+
+
+def test_a_killed_run_leaves_every_written_frame_in_its_journal(tmp_path: Path) -> None:
+    """SIGKILL while frame 6 is being made (after frames 0-5 were written): ``wsim recover``
+    writes frames 0-5, the same points and paddle poses as an uninterrupted run's."""
+    out = tmp_path / "killed.usdc"
+    proc = _killed_run(out, at=6, frames=20)
     assert proc.returncode == -9, proc.stderr
     assert not out.exists() and usd.journal_path(out).is_file()
 
@@ -187,17 +193,7 @@ def test_recover_then_resume_from_a_checkpoint_gives_the_whole_animation(tmp_pat
     checkpoint; the file holds every frame, equal to an uninterrupted run's."""
     out = tmp_path / "long.usdc"
     ckpt = tmp_path / "long.ckpt.h5"
-    script = textwrap.dedent(f"""
-        import os, signal, sys
-        sys.path.insert(0, {str(ROOT / 'scenes')!r})
-        import soft_drop
-        def kill(world):
-            if world.frame == 8:
-                os.kill(os.getpid(), signal.SIGKILL)
-        soft_drop.build(device="cpu").run(12, out={str(out)!r}, progress=False, on_frame=kill,
-                                          checkpoint={str(ckpt)!r}, checkpoint_every=5)
-    """)
-    assert subprocess.run([sys.executable, "-c", script], timeout=600).returncode == -9
+    assert _killed_run(out, at=8, frames=12, extra=f", checkpoint={str(ckpt)!r}, checkpoint_every=5").returncode == -9
     usd.recover(out)
     res = _cli("run", "scenes/soft_drop.py", "-o", str(out), "--frames", "12", "--resume", str(ckpt), "--device", "cpu",
                "--no-progress")
