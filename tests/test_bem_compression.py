@@ -145,3 +145,45 @@ def test_compression_options_are_checked() -> None:
         wsim.BemBody(cube, mat, 0.005, name="c", compression=0.5)
     with pytest.raises(wsim.InvalidParameter, match=r"must lie in \(0, 1\)"):
         wsim.BemBody(cube, mat, 0.005, name="c", compression_error=2.0)
+
+
+def test_device_kernels_equal_the_host_compressed_history(cube) -> None:
+    """The Warp kernels (here on the CPU device) of the wavelet-domain history: transforms from
+    prefix sums, the packed sparse sum over 2 n_max matrices and the inverse, against the numpy
+    ``CompressedHistory`` (float32 storage: 1e-5 relative)."""
+    import warp as wp
+
+    from wsim.bem.compression import compress_history, pack_rows
+    from wsim.kernels import bem_compressed as kc
+
+    ops = cube[0]
+    ch = compress_history(ops, ratio=8.0)
+    n, size, n_max = ch.n, ch.size, len(ch.H)
+    rng = np.random.default_rng(5)
+    U, P = rng.standard_normal((n_max, n)), rng.standard_normal((n_max, n))
+    step = 17
+    want = ch.history(U, P, step)
+
+    def forward(X: np.ndarray) -> wp.array:
+        rows = np.zeros((len(X), size))
+        rows[:, :n] = X[:, ch.perm]
+        flat = wp.array(rows.ravel(), dtype=wp.float64, device="cpu")
+        S = wp.empty_like(flat)
+        wp.utils.array_scan(flat, S, inclusive=True)
+        out = wp.zeros((len(X), size), dtype=wp.float32, device="cpu")
+        wp.launch(kc.haar_coefficients, dim=(len(X), size), inputs=[S, size, out], device="cpu")
+        np.testing.assert_allclose(out.numpy(), haar(rows, axis=1), rtol=0, atol=1e-5 * np.abs(rows).max())
+        return out
+
+    U_hat, P_hat = forward(U), forward(P)
+    bounds, cols, vals = pack_rows([*ch.H, *ch.G])
+    h_hat = wp.zeros((1, size), dtype=wp.float32, device="cpu")
+    wp.launch_tiled(kc.history_spmv, dim=size, block_dim=int(kc.SPMV_BLOCK), device="cpu",
+                    inputs=[wp.array(bounds, dtype=wp.int64, device="cpu"), wp.array(cols, dtype=wp.uint16, device="cpu"),
+                            wp.array(vals, dtype=wp.float32, device="cpu"), U_hat, P_hat, step, h_hat])
+    h = wp.zeros((1, size), dtype=wp.float32, device="cpu")
+    wp.launch(kc.haar_inverse, dim=(1, size), inputs=[h_hat, h], device="cpu")
+    got = np.empty(n)
+    got[ch.perm] = h.numpy()[0, :n]
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-5 * np.abs(want).max())
+    assert 6 * len(vals) < 4 * 2 * n_max * n * n / 5  # 6 bytes a kept coefficient: CR 8 stores < 1/5

@@ -30,6 +30,7 @@ coefficients.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 import scipy.sparse as sp
@@ -415,3 +416,26 @@ def compress_history(ops, ratio: float | None = None, error: float | None = None
     n_max = ops.n_max
     return CompressedHistory(perm=perm, H=tuple(one(ops.H[k]) for k in range(1, n_max + 1)),
                              G=tuple(one(ops.G[k]) for k in range(1, n_max + 1)), H0_inv=one(ops.H0_inv), spec=spec)
+
+
+def pack_rows(matrices: Sequence[CompressedMatrix]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The kept coefficients of several matrices of one size, laid out row by row for the device
+    (``wsim.kernels.bem_compressed.history_spmv``): (bounds (size, len + 1) int64: where matrix j's
+    part of row i starts, columns uint16, values float32). 6 bytes a coefficient."""
+    size = matrices[0].size
+    if size > 65536:
+        raise InvalidParameter(f"pack_rows: padded size {size} exceeds the uint16 columns (3N <= 65536)")
+    counts = np.stack([np.diff(m.C.indptr) for m in matrices], axis=1)  # (size, J)
+    starts = np.concatenate([[0], np.cumsum(counts.ravel())])
+    J = len(matrices)
+    bounds = np.empty((size, J + 1), dtype=np.int64)
+    bounds[:, :J] = starts[:-1].reshape(size, J)
+    bounds[:, J] = starts[J::J]
+    cols = np.empty(int(starts[-1]), dtype=np.uint16)
+    vals = np.empty(int(starts[-1]), dtype=np.float32)
+    for j, m in enumerate(matrices):
+        c = m.C
+        dest = np.repeat(bounds[:, j] - c.indptr[:-1], np.diff(c.indptr)) + np.arange(c.nnz)
+        cols[dest] = c.indices
+        vals[dest] = c.data
+    return bounds, cols, vals
