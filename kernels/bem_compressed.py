@@ -105,3 +105,55 @@ def history_spmv(
             acc += part
     total = wp.tile_sum(wp.tile(acc))
     wp.tile_store(h_hat[0], total, offset=row)
+
+
+@wp.kernel
+def gather_rows(src: wp.array2d(dtype=wp.float32), perm: wp.array(dtype=wp.int32), size: int,
+                out: wp.array(dtype=wp.float64)):
+    """out[r * size + i] = src[r, perm[i]] for i < len(perm), 0 past it: rows of the (pitched)
+    ring or vector reordered and zero padded, laid end to end for one prefix scan."""
+    r, i = wp.tid()
+    v = wp.float64(0.0)
+    if i < perm.shape[0]:
+        v = wp.float64(src[r, perm[i]])
+    out[r * size + i] = v
+
+
+@wp.kernel
+def rows_spmv(bounds: wp.array2d(dtype=wp.int64), cols: wp.array(dtype=wp.uint16), vals: wp.array(dtype=wp.float32),
+              x_hat: wp.array2d(dtype=wp.float32), y_hat: wp.array2d(dtype=wp.float32)):
+    """y_hat[0, row] = (C x_hat[0])[row] for one packed matrix C (``bounds[row, 0..1]``)."""
+    row, lane = wp.tid()
+    stride = wp.block_dim()
+    acc = float(0.0)
+    e = bounds[row, 0] + wp.int64(lane)
+    end = bounds[row, 1]
+    while e < end:
+        acc += vals[e] * x_hat[0, int(cols[e])]
+        e += wp.int64(stride)
+    total = wp.tile_sum(wp.tile(acc))
+    wp.tile_store(y_hat[0], total, offset=row)
+
+
+@wp.kernel
+def scatter_history(h_p: wp.array2d(dtype=wp.float32), perm: wp.array(dtype=wp.int32),
+                    DQ: wp.array3d(dtype=wp.float32), B: wp.array2d(dtype=wp.float32), step: int,
+                    h: wp.array(dtype=wp.float32)):
+    """h[perm[i]] = h_p[0, i] + sum_k [D_k Q_k][perm[i]] . b_(n-k): the compressed history back in
+    the original order with the (dense, 3N x 6) frame-acceleration terms of Eq. (9)."""
+    i = wp.tid()
+    row = perm[i]
+    n_max = DQ.shape[0]
+    acc = float(h_p[0, i])
+    for k in range(1, n_max + 1):
+        slot = (step - k) % n_max
+        for j in range(6):
+            acc += DQ[k - 1, row, j] * B[slot, j]
+    h[row] = acc
+
+
+@wp.kernel
+def scatter_add(y_p: wp.array2d(dtype=wp.float32), perm: wp.array(dtype=wp.int32), y: wp.array(dtype=wp.float32)):
+    """y[perm[i]] += y_p[0, i]."""
+    i = wp.tid()
+    y[perm[i]] = y[perm[i]] + y_p[0, i]

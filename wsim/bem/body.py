@@ -124,7 +124,7 @@ class BemBody(VertexImpulses, Body):
         operators: a prebuilt :class:`~wsim.bem.BemOperators` for this mesh (skips the build).
         matvec: "auto" (Warp on CUDA, BLAS on CPU), "warp" or "blas" (CPU only).
         compression: keep 1 / CR of the Haar coefficients of H_k, G_k (k >= 1) and H_0^-1 (the
-            paper's compression ratio CR >= 1; ``wsim.bem.compression``); CPU device for now.
+            paper's compression ratio CR >= 1; ``wsim.bem.compression``).
         compression_error: instead, per matrix the fewest coefficients whose relative matvec error
             stays below this on smooth surface fields (``compression.choose_keep``).
         divergence_limit: |u| [m] beyond which the step stops with ``SimulationDiverged``
@@ -417,10 +417,11 @@ class BemBody(VertexImpulses, Body):
         ops = self._ops
         self._device = device
         backend = stepper.resolve_backend(self.matvec, device)
-        if self._compression is not None and backend != "blas":
-            raise InvalidParameter(f"body '{self.name}': compressed operators run on the CPU device for now "
-                                   f"(device '{device.alias}'); their GPU kernels are the next step")
+        if self._compression is not None and backend == "warp" and ops.precision != "float32":
+            raise InvalidParameter(f"body '{self.name}': compressed operators on the Warp backend need "
+                                   f"precision='float32' (got {ops.precision!r})")
         self._so = so = stepper.step_operators(ops, device, backend, self._compression)
+        self._scratch = stepper.CompressedScratch(so) if so.packed is not None else None
         self._gravity = np.asarray(gravity, dtype=np.float64)
         self._inertia = ops.inertia
         self._inertia_inv = np.linalg.inv(ops.inertia)
@@ -842,7 +843,7 @@ class BemBody(VertexImpulses, Body):
         t0 = time.perf_counter()
         # the history needs only past steps: launch it first, so the host evaluates the loads
         # while the device streams the matrices
-        stepper.history(so, self._U_k, self._P_k, self.state.B, self.state.ring, self._h)
+        stepper.history(so, self._U_k, self._P_k, self.state.B, self.state.ring, self._h, self._scratch)
         t0 = self._tick("history", t0)
         p = self._tractions(t) if self._loads else None
         has_p = p is not None and bool(np.any(p))
@@ -858,7 +859,7 @@ class BemBody(VertexImpulses, Body):
             self._p.zero_()
             self._p_live = False
         t0 = self._tick("loads", t0)
-        stepper.solve(so, self._p_k if has_p else None, self._h_k, self._u_dev)
+        stepper.solve(so, self._p_k if has_p else None, self._h_k, self._u_dev, self._scratch)
         wp.copy(self._u_out, self._u_dev, count=n3)
         wp.synchronize_device(self._device)
         u = self._u_out.numpy()[:n3].astype(np.float64)

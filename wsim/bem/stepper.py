@@ -15,8 +15,9 @@ Two backends compute the passes (``history`` and ``solve``):
 ``"auto"`` picks Warp on CUDA and BLAS on the CPU, where Warp's kernels run on one thread and
 numpy's BLAS uses every core (``tools/bench_bem_step.py`` measures both: 7x on 2 cores).
 
-With a ``CompressedHistory`` (``wsim.bem.compression``; CPU device for now) the history and
-H_0^-1 h products run on the kept Haar coefficients instead, and H_k, G_k, H_0^-1 are not
+With a ``CompressedHistory`` (``wsim.bem.compression``) the history and H_0^-1 h products run on
+the kept Haar coefficients instead (BLAS backend: scipy on the host; Warp backend:
+``wsim.kernels.bem_compressed``, the rings transformed each step), and H_k, G_k, H_0^-1 are not
 uploaded; H_0^-1 G' stays dense (the constraint solver reads its entries).
 """
 
@@ -59,6 +60,7 @@ class StepOperators:
     E: np.ndarray  # (3N, 6) [H_0^-1 D_0, H_0^-1 Q_0], float64: re-solves for changed a, alpha
     vec4: dict[str, wp.array]  # Warp backend: vec4 views of H, G, H0_inv, H0_inv_Gp
     compressed: Any = None  # a CompressedHistory: H, G, H0_inv are then empty placeholders
+    packed: Any = None  # Warp backend with compression: the device layout (``_compressed_step_operators``)
 
     @cached_property
     def correction(self) -> Correction:
@@ -156,26 +158,108 @@ def step_operators(ops: BemOperators, device: wp.Device, backend: str,
 
 def _compressed_step_operators(ops: BemOperators, device: wp.Device, backend: str, compression: tuple[str, float],
                                key: tuple) -> StepOperators:
-    from wsim.bem.compression import compress_history
+    """H_k, G_k, H_0^-1 compressed (``CompressedHistory``): on the host for the BLAS backend, packed
+    for ``wsim.kernels.bem_compressed`` for the Warp backend (float32 operators); H_0^-1 G' dense."""
+    from wsim.bem.compression import compress_history, pack_rows
 
-    if backend != "blas":
-        raise InvalidParameter("compressed operators run on the CPU device for now (matvec 'blas'); their GPU "
-                               "kernels are the next step")
+    if backend == "warp" and ops.precision != "float32":
+        raise InvalidParameter("compressed operators on the Warp backend need float32 operators (precision='float32')")
     how, value = compression
     ch = compress_history(ops, ratio=value if how == "ratio" else None, error=value if how == "error" else None)
     dtype = PRECISIONS[ops.precision]
     wdt = wp.float32 if dtype == np.float32 else wp.float64
     n3 = 3 * ops.n_nodes
-    empty = wp.zeros((0, n3), dtype=wdt, device=device)
+    packed = None
+    if backend == "warp":
+        pitch = -(-n3 // 4) * 4
+        H0_inv_Gp = _upload_padded(ops.H0_inv_Gp, dtype, wdt, pitch, device)
+        vec4 = {"H0_inv_Gp": vec4_view(H0_inv_Gp)}
+
+        def arrays(mats) -> tuple[wp.array, wp.array, wp.array]:
+            b, c, v = pack_rows(mats)
+            return (wp.array(b, dtype=wp.int64, device=device), wp.array(c, dtype=wp.uint16, device=device),
+                    wp.array(v, dtype=wp.float32, device=device))
+
+        packed = {"perm": wp.array(ch.perm.astype(np.int32), dtype=wp.int32, device=device), "size": ch.size,
+                  "history": arrays([*ch.H, *ch.G]), "H0_inv": arrays([ch.H0_inv])}
+    else:
+        pitch = n3
+        H0_inv_Gp = wp.array(np.ascontiguousarray(ops.H0_inv_Gp, dtype=dtype), dtype=wdt, device=device, copy=False)
+        vec4 = {}
     out = StepOperators(
-        operators=ops, device=device, backend=backend, dtype=wdt, pitch=n3,
-        H=wp.zeros((0, 0, n3), dtype=wdt, device=device), G=wp.zeros((0, 0, n3), dtype=wdt, device=device),
+        operators=ops, device=device, backend=backend, dtype=wdt, pitch=pitch,
+        H=wp.zeros((0, 0, pitch), dtype=wdt, device=device), G=wp.zeros((0, 0, pitch), dtype=wdt, device=device),
         DQ=wp.array(np.concatenate([ops.D[1:], ops.Q[1:]], axis=2).astype(dtype), dtype=wdt, device=device),
-        H0_inv=empty, H0_inv_Gp=wp.array(np.ascontiguousarray(ops.H0_inv_Gp, dtype=dtype), dtype=wdt, device=device,
-                                          copy=False),
-        E=ops.solve_H0(np.hstack([ops.D[0], ops.Q[0]])), vec4={}, compressed=ch)
+        H0_inv=wp.zeros((0, pitch), dtype=wdt, device=device), H0_inv_Gp=H0_inv_Gp,
+        E=ops.solve_H0(np.hstack([ops.D[0], ops.Q[0]])), vec4=vec4, compressed=ch, packed=packed)
     _SHARED[key] = out
     return out
+
+
+class CompressedScratch:
+    """One body's work arrays for the compressed Warp passes (``history``, ``solve``)."""
+
+    def __init__(self, so: StepOperators) -> None:
+        size, n_max, d = so.packed["size"], so.n_max, so.device
+        self.rows = wp.zeros(2 * n_max * size, dtype=wp.float64, device=d)
+        self.S = wp.zeros_like(self.rows)
+        self.hat = wp.zeros((2 * n_max, size), dtype=wp.float32, device=d)
+        self.one = wp.zeros(size, dtype=wp.float64, device=d)
+        self.S1 = wp.zeros_like(self.one)
+        self.one_hat = wp.zeros((1, size), dtype=wp.float32, device=d)
+        self.y_hat = wp.zeros((1, size), dtype=wp.float32, device=d)
+        self.y = wp.zeros((1, size), dtype=wp.float32, device=d)
+
+
+def _scalar(a: wp.array, so: StepOperators) -> wp.array:
+    """The scalar (float) view of a vec4 view or a plain array: same memory, rows of ``pitch``."""
+    n = a.shape[-1] * (4 if a.dtype in _VEC4.values() else 1)
+    return wp.array(ptr=a.ptr, dtype=so.dtype, shape=(*a.shape[:-1], n), device=a.device, copy=False)
+
+
+def _transform(so: StepOperators, src: wp.array, rows: int, buf: wp.array, S: wp.array, out: wp.array) -> None:
+    """``out`` (rows, size) = W P of the rows of ``src`` (rows, pitch): gather, one scan, coefficients."""
+    from wsim.kernels import bem_compressed as kc
+
+    size, perm = so.packed["size"], so.packed["perm"]
+    wp.launch(kc.gather_rows, dim=(rows, size), inputs=[src, perm, size, buf], device=so.device)
+    wp.utils.array_scan(buf, S, inclusive=True)
+    wp.launch(kc.haar_coefficients, dim=(rows, size), inputs=[S, size, out], device=so.device)
+
+
+def _compressed_history(so: StepOperators, U: wp.array, P: wp.array, B: wp.array, step: int, h: wp.array,
+                        sc: CompressedScratch) -> None:
+    from wsim.kernels import bem_compressed as kc
+
+    n_max, size = so.n_max, so.packed["size"]
+    Us, Ps = _scalar(U, so), _scalar(P, so)
+    _transform(so, Us, n_max, sc.rows[: n_max * size], sc.S[: n_max * size], sc.hat[:n_max])
+    _transform(so, Ps, n_max, sc.rows[n_max * size:], sc.S[n_max * size:], sc.hat[n_max:])
+    bounds, cols, vals = so.packed["history"]
+    wp.launch_tiled(kc.history_spmv, dim=size, block_dim=int(kc.SPMV_BLOCK), device=so.device,
+                    inputs=[bounds, cols, vals, sc.hat[:n_max], sc.hat[n_max:], step, sc.y_hat])
+    wp.launch(kc.haar_inverse, dim=(1, size), inputs=[sc.y_hat, sc.y], device=so.device)
+    wp.launch(kc.scatter_history, dim=so.size, inputs=[sc.y, so.packed["perm"], so.DQ, B, step, _scalar(h, so)],
+              device=so.device)
+
+
+def _compressed_solve(so: StepOperators, p: wp.array | None, h: wp.array, u: wp.array, sc: CompressedScratch) -> None:
+    from wsim.kernels import bem_compressed as kc
+
+    size = so.packed["size"]
+    if p is not None:  # u = H_0^-1 G' p (dense: the constraint solver reads it too)
+        wp.launch_tiled(ks.solve_matvec, dim=so.size, block_dim=int(ks.MATVEC_BLOCK), device=so.device,
+                        inputs=[so.vec4["H0_inv_Gp"], so.vec4["H0_inv_Gp"], p, p, 0, u])
+    else:
+        u.zero_()
+    hs = _scalar(h, so)
+    _transform(so, wp.array(ptr=hs.ptr, dtype=so.dtype, shape=(1, so.pitch), device=so.device, copy=False), 1, sc.one,
+               sc.S1, sc.one_hat)
+    bounds, cols, vals = so.packed["H0_inv"]
+    wp.launch_tiled(kc.rows_spmv, dim=size, block_dim=int(kc.SPMV_BLOCK), device=so.device,
+                    inputs=[bounds, cols, vals, sc.one_hat, sc.y_hat])
+    wp.launch(kc.haar_inverse, dim=(1, size), inputs=[sc.y_hat, sc.y], device=so.device)
+    wp.launch(kc.scatter_add, dim=so.size, inputs=[sc.y, so.packed["perm"], _scalar(u, so)], device=so.device)
 
 
 def resolve_backend(backend: str, device: wp.Device) -> str:
@@ -188,9 +272,14 @@ def resolve_backend(backend: str, device: wp.Device) -> str:
     return backend
 
 
-def history(so: StepOperators, U: wp.array, P: wp.array, B: wp.array, step: int, h: wp.array) -> None:
+def history(so: StepOperators, U: wp.array, P: wp.array, B: wp.array, step: int, h: wp.array,
+            scratch: CompressedScratch | None = None) -> None:
     """h_n of Eq. (9) into ``h`` (ring row m holds step m mod n_max). For the Warp backend U and P
-    are the vec4 views of the rings (``vec4_view``)."""
+    are the vec4 views of the rings (``vec4_view``); compressed operators on it need the body's
+    ``scratch``."""
+    if so.packed is not None:
+        _compressed_history(so, U, P, B, step, h, scratch)
+        return
     if so.backend == "warp":
         wp.launch_tiled(ks.history_matvec, dim=so.size, block_dim=int(ks.MATVEC_BLOCK), device=so.device,
                         inputs=[so.vec4["H"], so.vec4["G"], U, P, so.DQ, B, step, h])
@@ -214,9 +303,13 @@ def history(so: StepOperators, U: wp.array, P: wp.array, B: wp.array, step: int,
     h.numpy()[:] = out
 
 
-def solve(so: StepOperators, p: wp.array | None, h: wp.array, u: wp.array) -> None:
+def solve(so: StepOperators, p: wp.array | None, h: wp.array, u: wp.array,
+          scratch: CompressedScratch | None = None) -> None:
     """u_n = H_0^-1 G' p_n + H_0^-1 h_n (Eq. 12) into ``u``; ``p=None`` means p_n = 0. For the Warp
     backend p and h are vec4 views."""
+    if so.packed is not None:
+        _compressed_solve(so, p, h, u, scratch)
+        return
     if so.backend == "warp":
         wp.launch_tiled(ks.solve_matvec, dim=so.size, block_dim=int(ks.MATVEC_BLOCK), device=so.device,
                         inputs=[so.vec4["H0_inv_Gp"], so.vec4["H0_inv"], h if p is None else p, h, int(p is not None), u])
