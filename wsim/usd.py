@@ -171,6 +171,7 @@ class _Journal:
         self.last: int | None = None
         header = json.dumps({"blocks": blocks, "start_frame": offset}).encode()
         data = base.encode()
+        self._synced = 0.0  # monotonic time of the last fsync
         self._fh = open(path, "wb")
         self._write(_JOURNAL_MAGIC + struct.pack("<I", len(header)) + header + struct.pack("<Q", len(data)) + data)
         self._sync(force=True)
@@ -181,7 +182,7 @@ class _Journal:
 
     def _sync(self, force: bool = False) -> None:
         now = _time.monotonic()
-        if force or now - getattr(self, "_synced", 0.0) >= _FSYNC_SECONDS:
+        if force or now - self._synced >= _FSYNC_SECONDS:
             os.fsync(self._fh.fileno())
             self._synced = now
 
@@ -287,14 +288,16 @@ class UsdWriter:
 
     def __init__(self, path: str | os.PathLike, fps: float, up_axis: str = "Y", world_up_axis: str = "Y",
                  start_frame: int = 0) -> None:
-        self.path = check_output_path(path)
-        self.fps = float(fps)
         if isinstance(start_frame, bool) or not isinstance(start_frame, (int, np.integer)):
             raise InvalidParameter(f"start_frame must be an integer frame number, got {start_frame!r}")
-        self.offset = int(start_frame)
+        up = check_up_axis(up_axis)
+        self._init(check_output_path(path), float(fps), int(start_frame), up,
+                   _AXIS_ROTATION[(check_up_axis(world_up_axis), up)])
+
+    def _init(self, path: Path, fps: float, offset: int, up_axis: str, R: np.ndarray) -> None:
+        """Every field of a writer with no stage yet (``__init__``, and ``recover``'s replay)."""
+        self.path, self.fps, self.offset, self.up_axis, self._R = path, fps, offset, up_axis, R
         self._faces: dict[str, np.ndarray] = {}
-        self.up_axis = check_up_axis(up_axis)
-        self._R = _AXIS_ROTATION[(check_up_axis(world_up_axis), self.up_axis)]
         self._A = np.eye(4)
         self._A[:3, :3] = self._R
         self._stage = None
@@ -545,12 +548,11 @@ def recover(path: str | os.PathLike, out: str | os.PathLike | None = None) -> tu
     if not layer.ImportFromString(base):
         raise OutputError(f"'{journal}': the stage it holds is not valid USD")
     stage = Usd.Stage.Open(layer)
-    writer = UsdWriter.__new__(UsdWriter)
-    writer.path, writer.fps, writer.offset = dest, float(stage.GetTimeCodesPerSecond()), int(header.get("start_frame", 0))
-    writer._stage, writer._journal, writer.appended = stage, None, False
+    writer = UsdWriter.__new__(UsdWriter)  # not __init__: the target's journal exists (it is what we read)
+    up = "Z" if UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.z else "Y"
+    writer._init(dest, float(stage.GetTimeCodesPerSecond()), int(header.get("start_frame", 0)), up, np.eye(3))
+    writer._stage = stage
     writer._first = int(stage.GetStartTimeCode()) - writer.offset if stage.HasAuthoredTimeCodeRange() else None
-    writer._last = None
-    writer._bodies, writer._prev, writer._prev2 = {}, {}, {}
     writer._meshes = {b[1]: UsdGeom.Mesh(stage.GetPrimAtPath(b[1])) for b in blocks if b[0] == "points"}
     writer._faces = {p: np.asarray(m.GetFaceVertexIndicesAttr().Get(), dtype=np.int64).reshape(-1, 3)
                      for p, m in writer._meshes.items()}

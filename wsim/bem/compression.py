@@ -135,6 +135,21 @@ def permutation(n_nodes: int, ordering: str = "v+c", order: np.ndarray | None = 
     return (3 * nodes[:, None] + np.arange(3)[None, :]).ravel()
 
 
+def to_wavelet(x: np.ndarray, perm: np.ndarray, size: int) -> np.ndarray:
+    """W P x for x (n,) or (n, k): reordered, zero padded to ``size``, Haar transformed."""
+    xp = np.zeros((size,) + x.shape[1:])
+    xp[: len(perm)] = x[perm]
+    return haar(xp, axis=0)
+
+
+def from_wavelet(y_hat: np.ndarray, perm: np.ndarray) -> np.ndarray:
+    """P^T W^T y_hat: back to the original order (the inverse of ``to_wavelet``)."""
+    yp = inverse_haar(y_hat, axis=0)[: len(perm)]
+    y = np.empty_like(yp)
+    y[perm] = yp
+    return y
+
+
 @dataclass(frozen=True)
 class CompressedMatrix:
     """A square matrix A (n x n) as kept Haar coefficients: A ~ P^T W^T C W P, C sparse (CSR over
@@ -170,29 +185,16 @@ class CompressedMatrix:
     def nbytes(self) -> int:
         return int(self.C.data.nbytes + self.C.indices.nbytes + self.C.indptr.nbytes + self.perm.nbytes)
 
-    def _forward(self, x: np.ndarray) -> np.ndarray:
-        xp = np.zeros((self.size,) + x.shape[1:])
-        xp[: self.n] = x[self.perm]
-        return haar(xp, axis=0)
-
     def matvec(self, x: np.ndarray) -> np.ndarray:
         """A x for x of shape (n,) or (n, k)."""
-        x = np.asarray(x, dtype=np.float64)
-        yp = inverse_haar(self.C @ self._forward(x), axis=0)[: self.n]
-        y = np.empty_like(yp)
-        y[self.perm] = yp
-        return y
+        return from_wavelet(self.C @ to_wavelet(np.asarray(x, dtype=np.float64), self.perm, self.size), self.perm)
 
     def row(self, r: int) -> np.ndarray:
         """Row r of A (the reconstruction), in the original column order."""
         inv = np.empty(self.n, dtype=np.int64)
         inv[self.perm] = np.arange(self.n)
         idx, val = haar_basis(int(inv[r]), self.size)
-        coeff = np.asarray(self.C[idx].T @ val).ravel()  # w_i^T C
-        rp = inverse_haar(coeff)[: self.n]
-        out = np.empty(self.n)
-        out[self.perm] = rp
-        return out
+        return from_wavelet(np.asarray(self.C[idx].T @ val).ravel(), self.perm)  # (w_i^T C) W P
 
     def row_dot(self, r: int, x: np.ndarray) -> float:
         """(A x)_r from row r alone (what a Gauss-Seidel sweep asks)."""
@@ -285,7 +287,7 @@ def choose_keep(A: np.ndarray, perm: np.ndarray, eps: float, vectors: np.ndarray
     norm = float(np.linalg.norm(A))
     ref = A @ X
     ref_norm = np.maximum(np.linalg.norm(ref, axis=0), 1e-300)
-    Xh = haar(np.pad(X[perm], ((0, coeffs.shape[0] - n), (0, 0))), axis=0)  # W P x, once
+    Xh = to_wavelet(X, perm, coeffs.shape[0])  # W P x, once
     order = np.argsort(np.abs(coeffs).ravel())[::-1]
     rows, cols = np.divmod(order, coeffs.shape[0])
 
@@ -367,31 +369,19 @@ class CompressedHistory:
         """Entries of the dense matrices over coefficients kept, over all of them."""
         return len(self.matrices) * self.n * self.n / max(sum(m.kept for m in self.matrices), 1)
 
-    def _forward(self, X: np.ndarray) -> np.ndarray:
-        """W P x for the columns of X (n x k)."""
-        Xp = np.zeros((self.size, X.shape[1]))
-        Xp[: self.n] = X[self.perm]
-        return haar(Xp, axis=0)
-
-    def _back(self, y_hat: np.ndarray) -> np.ndarray:
-        yp = inverse_haar(y_hat, axis=0)[: self.n]
-        y = np.empty_like(yp)
-        y[self.perm] = yp
-        return y
-
     def history(self, U: np.ndarray, P: np.ndarray, step: int) -> np.ndarray:
         """sum_k G_k P[(step - k) % n_max] - H_k U[(step - k) % n_max] (rows of U, P: the rings,
         at least n long)."""
         n_max = len(self.H)
         n = self.n
-        U_hat = self._forward(np.asarray(U, dtype=np.float64)[:, :n].T)
-        P_hat = self._forward(np.asarray(P, dtype=np.float64)[:, :n].T)
+        U_hat = to_wavelet(np.asarray(U, dtype=np.float64)[:, :n].T, self.perm, self.size)
+        P_hat = to_wavelet(np.asarray(P, dtype=np.float64)[:, :n].T, self.perm, self.size)
         acc = np.zeros(self.size)
         for k in range(1, n_max + 1):
             s = (step - k) % n_max
             acc += self.G[k - 1].C @ P_hat[:, s]
             acc -= self.H[k - 1].C @ U_hat[:, s]
-        return self._back(acc)
+        return from_wavelet(acc, self.perm)
 
 
 def compress_history(ops, ratio: float | None = None, error: float | None = None,
