@@ -6,56 +6,106 @@ P the v+c reordering) is computed in the wavelet domain: the ring holds W P u an
 vector transformed once, when it enters the ring), the kept coefficients of all 2 n_max matrices
 are summed against them row by row, and one inverse transform brings h back.
 
-* ``haar_coefficients``: the Haar coefficients of rows from their float64 inclusive prefix sums
-  S (``wp.utils.array_scan`` over the rows laid end to end): the average is S(n) / sqrt(n), a
-  detail of a block [a, a + m) is (2 S(a + m/2) - S(a) - S(a + m)) / sqrt(m); O(1) each.
-* ``haar_inverse``: x_i = c_0 / sqrt(n) + sum over the log2(n) blocks holding i of
+* ``haar_first_pass`` + ``haar_pass``: the forward transform of rows in passes of 4 levels
+  (log2(size) / 4 launches, 4 for a size of 16384): a thread loads 16 block sums of the previous
+  pass (the reordered, zero-padded entries in the first, gathered in the kernel) into registers
+  at once and combines them into their 15 detail coefficients and their sum, float64 throughout.
+* ``haar_inverse`` (and fused with the scatter back to the original order: ``inverse_history``,
+  ``inverse_add``): x_i = c_0 / sqrt(n) + sum over the log2(n) blocks holding i of
   +-c_block / sqrt(m) (+ in the block's first half).
-* ``history_spmv``: one block of threads per output row; the row's kept coefficients of the
-  2 n_max matrices (values float32, columns uint16: 6 bytes a coefficient, n <= 65536) are laid out
-  per row as [H_1 | ... | H_n_max | G_1 | ... | G_n_max], ``bounds[row, j]`` the start of matrix j.
+* ``chunk_sums`` + ``row_sums``: the sparse products, balanced. The kept coefficients of the
+  2 n_max history matrices (values float32, columns uint16: 6 bytes a coefficient, n <= 65536) are
+  laid out per row as [H_1 | ... | H_n_max | G_1 | ... | G_n_max] (``bounds[row, j]`` the start
+  of matrix j; ``compression.pack_rows``), and each row's part of each matrix is cut into work
+  items of at most CHUNK coefficients (``compression.work_items``): the coarse rows of a Haar basis
+  keep thousands of coefficients, the fine ones
+  tens, so one block per row would leave the GPU waiting on the few long rows. One block per item
+  (one warp) writes its partial sum, one warp per row adds its items in a fixed order (no atomics:
+  the same result every run).
 """
 
 from __future__ import annotations
 
+from typing import Any
+
 import warp as wp
 
-SPMV_BLOCK = wp.constant(128)
+SPMV_BLOCK = wp.constant(32)  # one warp an item
+CHUNK = 512  # coefficients per work item of ``chunk_sums`` (16 per lane): rows of any length, balanced
+PASS_GROUP = 16  # entries or block sums one thread of a transform pass combines (4 levels a pass: a
+# thread's loads are serial, so short passes keep the latency of a two-vector transform low)
+
+
+vec16d = wp.types.vector(length=16, dtype=wp.float64)
 
 
 @wp.func
-def _prefix(S: wp.array(dtype=wp.float64), base: int, i: int) -> wp.float64:
-    """sum of the row's first i entries from the rows' joint inclusive prefix sums S."""
-    before = wp.float64(0.0)
-    if base > 0:
-        before = S[base - 1]
-    if i == 0:
-        return wp.float64(0.0)
-    return S[base + i - 1] - before
+def _pass_levels(x: vec16d, group: int, bs: int, size: int, base: int, out: wp.array2d(dtype=wp.float32),
+                 dest: int) -> wp.float64:
+    """The levels a pass spans, in registers: x holds ``group`` (<= 16) consecutive block sums of
+    ``bs`` entries each, starting at block ``base``. A block of width w sums (m = bs w entries) at
+    index b has the detail (sum of its first half - sum of its second half) / sqrt(m), at position
+    size / m + b of out[dest]. Returns the group's sum."""
+    width = int(2)
+    for level in range(4):
+        n_blocks = group // width
+        for b in range(8):
+            if b < n_blocks:
+                first = x[2 * b]
+                second = x[2 * b + 1]
+                m = bs * width
+                out[dest, size // m + base // width + b] = wp.float32((first - second) / wp.sqrt(wp.float64(m)))
+                x[b] = first + second
+        width *= 2
+    return x[0]
 
 
 @wp.kernel
-def haar_coefficients(S: wp.array(dtype=wp.float64), size: int, out: wp.array2d(dtype=wp.float32)):
-    """out[r, c] = the c-th Haar coefficient (``wsim.bem.compression.haar`` layout) of row r of the
-    rows whose joint inclusive prefix sums are S (rows of ``size`` entries, laid end to end)."""
-    r, c = wp.tid()
-    base = r * size
-    if c == 0:
-        out[r, c] = wp.float32(_prefix(S, base, size) / wp.sqrt(wp.float64(size)))
-        return
-    blocks = int(1)
-    while blocks * 2 <= c:
-        blocks *= 2
-    m = size // blocks
-    a = (c - blocks) * m
-    val = wp.float64(2.0) * _prefix(S, base, a + m // 2) - _prefix(S, base, a) - _prefix(S, base, a + m)
-    out[r, c] = wp.float32(val / wp.sqrt(wp.float64(m)))
+def haar_first_pass(src: wp.array2d(dtype=wp.float32), src_row0: int, perm: wp.array(dtype=wp.int32), group: int,
+                    size: int, out_row0: int, out_row_stride: int, sums_row0: int,
+                    out: wp.array2d(dtype=wp.float32), sums: wp.array2d(dtype=wp.float64)):
+    """The first pass of the forward transform (``wsim.bem.compression.haar`` layout) of rows
+    src[src_row0 + r] reordered by ``perm`` and zero padded to ``size``: thread (r, g) loads its
+    ``group`` (16) entries x_i = src[src_row0 + r, perm[i]] (i from g group; 0 past len(perm)) into
+    registers at once, writes the detail coefficients of the 4 finest levels (``_pass_levels``) to
+    out[out_row0 + r out_row_stride] and the group's sum to sums[sums_row0 + r, g] for the next pass
+    (``haar_pass``). Float64 sums."""
+    r, g = wp.tid()
+    base = g * group
+    n = perm.shape[0]
+    x = vec16d()
+    for i in range(16):
+        if i < group and base + i < n:
+            x[i] = wp.float64(src[src_row0 + r, perm[base + i]])
+    total = _pass_levels(x, group, 1, size, base, out, out_row0 + r * out_row_stride)
+    sums[sums_row0 + r, g] = total
+    if group == size:
+        out[out_row0 + r * out_row_stride, 0] = wp.float32(total / wp.sqrt(wp.float64(size)))
 
 
 @wp.kernel
-def haar_inverse(C: wp.array2d(dtype=wp.float32), out: wp.array2d(dtype=wp.float32)):
-    """out[r] = W^T C[r]: the inverse of ``haar_coefficients`` (``compression.inverse_haar``)."""
-    r, i = wp.tid()
+def haar_pass(src: wp.array2d(dtype=wp.float64), group: int, size: int, out_row0: int, out_row_stride: int,
+              out: wp.array2d(dtype=wp.float32), sums: wp.array2d(dtype=wp.float64)):
+    """A later pass of the forward transform: src[r] holds the sums of consecutive blocks of
+    size / count entries (count = src.shape[1]); thread (r, g) combines the ``group`` (<= 16) sums
+    at g group into the detail coefficients of the levels they span and their sum (sums[r, g]);
+    the last pass (one group) writes the average, sum / sqrt(size)."""
+    r, g = wp.tid()
+    count = src.shape[1]
+    base = g * group
+    x = vec16d()
+    for i in range(16):
+        if i < group:
+            x[i] = src[r, base + i]
+    total = _pass_levels(x, group, size // count, size, base, out, out_row0 + r * out_row_stride)
+    sums[r, g] = total
+    if group == count:
+        out[out_row0 + r * out_row_stride, 0] = wp.float32(total / wp.sqrt(wp.float64(size)))
+
+
+@wp.func
+def _inverse_at(C: wp.array2d(dtype=wp.float32), r: int, i: int) -> wp.float64:
+    """(W^T C[r])_i: the average plus the +-details of the log2(size) blocks holding i."""
     size = C.shape[1]
     v = wp.float64(C[r, 0]) / wp.sqrt(wp.float64(size))
     m = int(size)
@@ -67,93 +117,180 @@ def haar_inverse(C: wp.array2d(dtype=wp.float32), out: wp.array2d(dtype=wp.float
         else:
             v -= d
         m = m // 2
-    out[r, i] = wp.float32(v)
+    return v
 
 
 @wp.kernel
-def history_spmv(
-    bounds: wp.array2d(dtype=wp.int64),
-    cols: wp.array(dtype=wp.uint16),
-    vals: wp.array(dtype=wp.float32),
-    U_hat: wp.array2d(dtype=wp.float32),
-    P_hat: wp.array2d(dtype=wp.float32),
-    step: int,
-    h_hat: wp.array2d(dtype=wp.float32),
-):
-    """h_hat[0, row] = sum_k (C_Gk W P p_(n-k))[row] - (C_Hk W P u_(n-k))[row] over the kept
-    coefficients (the ring's row m holds step m mod n_max, transformed)."""
-    row, lane = wp.tid()
-    stride = wp.block_dim()
-    n_max = U_hat.shape[0]
-    acc = float(0.0)
-    for j in range(2 * n_max):
-        k = j % n_max + 1
-        slot = (step - k) % n_max
-        e = bounds[row, j] + wp.int64(lane)
-        end = bounds[row, j + 1]
-        part = float(0.0)
-        while e < end:
-            col = int(cols[e])
-            if j < n_max:
-                part += vals[e] * U_hat[slot, col]
-            else:
-                part += vals[e] * P_hat[slot, col]
-            e += wp.int64(stride)
-        if j < n_max:
-            acc -= part
-        else:
-            acc += part
-    total = wp.tile_sum(wp.tile(acc))
-    wp.tile_store(h_hat[0], total, offset=row)
-
-
-@wp.kernel
-def gather_rows(src: wp.array2d(dtype=wp.float32), perm: wp.array(dtype=wp.int32), size: int,
-                out: wp.array(dtype=wp.float64)):
-    """out[r * size + i] = src[r, perm[i]] for i < len(perm), 0 past it: rows of the (pitched)
-    ring or vector reordered and zero padded, laid end to end for one prefix scan."""
+def haar_inverse(C: wp.array2d(dtype=wp.float32), out: wp.array2d(dtype=wp.float32)):
+    """out[r] = W^T C[r]: the inverse of ``haar_coefficients`` (``compression.inverse_haar``)."""
     r, i = wp.tid()
-    v = wp.float64(0.0)
-    if i < perm.shape[0]:
-        v = wp.float64(src[r, perm[i]])
-    out[r * size + i] = v
+    out[r, i] = wp.float32(_inverse_at(C, r, i))
 
 
 @wp.kernel
-def rows_spmv(bounds: wp.array2d(dtype=wp.int64), cols: wp.array(dtype=wp.uint16), vals: wp.array(dtype=wp.float32),
-              x_hat: wp.array2d(dtype=wp.float32), y_hat: wp.array2d(dtype=wp.float32)):
-    """y_hat[0, row] = (C x_hat[0])[row] for one packed matrix C (``bounds[row, 0..1]``)."""
-    row, lane = wp.tid()
-    stride = wp.block_dim()
+def chunk_sums(item_row: wp.array(dtype=wp.int32), item_mat: wp.array(dtype=wp.int32),
+               item_start: wp.array(dtype=wp.int64), item_end: wp.array(dtype=wp.int64),
+               cols: wp.array(dtype=wp.uint16), vals: wp.array(dtype=wp.float32),
+               X: wp.array2d(dtype=wp.float32), n_max: int, step: int, partial: wp.array(dtype=wp.float32)):
+    """partial[item] = sign_j sum_e vals[e] x_j[cols[e]] over the item's coefficients
+    [item_start, item_end), all of one matrix j = item_mat (part of one row). History (n_max > 0):
+    matrices H_1..H_n_max then G_1..G_n_max against the wavelet-domain rings X (rows 0..n_max-1 u,
+    n_max.. p; step s in slot s mod n_max), sign - for H_k and + for G_k, x_j the ring slot of
+    step - k. One matrix (n_max = 0): x = X[0], sign +. Four coefficients a lane per iteration
+    (independent loads in flight)."""
+    item, lane = wp.tid()
+    j = item_mat[item]
+    e = item_start[item] + wp.int64(lane)
+    end = item_end[item]
+    stride = wp.int64(wp.block_dim())
+    x_row = int(0)
+    sign = float(1.0)
+    if n_max > 0:
+        x_row = (step - (j % n_max + 1)) % n_max
+        if j < n_max:
+            sign = -1.0
+        else:
+            x_row += n_max
     acc = float(0.0)
-    e = bounds[row, 0] + wp.int64(lane)
-    end = bounds[row, 1]
+    while e + wp.int64(3) * stride < end:  # four independent gathers in flight a lane
+        e1 = e + stride
+        e2 = e1 + stride
+        e3 = e2 + stride
+        acc += (vals[e] * X[x_row, int(cols[e])] + vals[e1] * X[x_row, int(cols[e1])]) + (
+            vals[e2] * X[x_row, int(cols[e2])] + vals[e3] * X[x_row, int(cols[e3])])
+        e += wp.int64(4) * stride
     while e < end:
-        acc += vals[e] * x_hat[0, int(cols[e])]
-        e += wp.int64(stride)
-    total = wp.tile_sum(wp.tile(acc))
-    wp.tile_store(y_hat[0], total, offset=row)
+        acc += vals[e] * X[x_row, int(cols[e])]
+        e += stride
+    wp.tile_store(partial, wp.tile_sum(wp.tile(sign * acc)), offset=item)
 
 
 @wp.kernel
-def scatter_history(h_p: wp.array2d(dtype=wp.float32), perm: wp.array(dtype=wp.int32),
+def row_sums(row_items: wp.array(dtype=wp.int64), partial: wp.array(dtype=wp.float32), y_hat: wp.array2d(dtype=wp.float32)):
+    """y_hat[0, row] = the sum of the row's items' partial sums: one warp a row, lanes striding over
+    the items (a coarse row has hundreds), a fixed order (deterministic)."""
+    row, lane = wp.tid()
+    acc = float(0.0)
+    i = row_items[row] + wp.int64(lane)
+    end = row_items[row + 1]
+    while i < end:
+        acc += partial[i]
+        i += wp.int64(wp.block_dim())
+    wp.tile_store(y_hat[0], wp.tile_sum(wp.tile(acc)), offset=row)
+
+
+@wp.kernel
+def inverse_history(h_hat: wp.array2d(dtype=wp.float32), perm: wp.array(dtype=wp.int32),
                     DQ: wp.array3d(dtype=wp.float32), B: wp.array2d(dtype=wp.float32), step: int,
                     h: wp.array(dtype=wp.float32)):
-    """h[perm[i]] = h_p[0, i] + sum_k [D_k Q_k][perm[i]] . b_(n-k): the compressed history back in
-    the original order with the (dense, 3N x 6) frame-acceleration terms of Eq. (9)."""
+    """h[perm[i]] = (W^T h_hat)_i + sum_k [D_k Q_k][perm[i]] . b_(n-k): the compressed history back
+    in the original order with the (dense, 3N x 6) frame-acceleration terms of Eq. (9)."""
     i = wp.tid()
     row = perm[i]
     n_max = DQ.shape[0]
-    acc = float(h_p[0, i])
+    acc = _inverse_at(h_hat, 0, i)
     for k in range(1, n_max + 1):
         slot = (step - k) % n_max
         for j in range(6):
-            acc += DQ[k - 1, row, j] * B[slot, j]
-    h[row] = acc
+            acc += wp.float64(DQ[k - 1, row, j] * B[slot, j])
+    h[row] = wp.float32(acc)
 
 
 @wp.kernel
-def scatter_add(y_p: wp.array2d(dtype=wp.float32), perm: wp.array(dtype=wp.int32), y: wp.array(dtype=wp.float32)):
-    """y[perm[i]] += y_p[0, i]."""
+def inverse_add(y_hat: wp.array2d(dtype=wp.float32), perm: wp.array(dtype=wp.int32), y: wp.array(dtype=wp.float32)):
+    """y[perm[i]] += (W^T y_hat)_i."""
     i = wp.tid()
-    y[perm[i]] = y[perm[i]] + y_p[0, i]
+    y[perm[i]] = y[perm[i]] + wp.float32(_inverse_at(y_hat, 0, i))
+
+# -- building the compressed operators on the device (``wsim.bem.compression.DeviceCoefficients``) --
+HALF = wp.constant(wp.float64(0.7071067811865476))  # sqrt(1/2): one orthonormal Haar level
+COUNT_BLOCK = wp.constant(256)
+
+
+@wp.kernel
+def permute_pad(A: wp.array2d(dtype=Any), perm: wp.array(dtype=wp.int32), out: wp.array2d(dtype=wp.float64)):
+    """out = P A P^T zero padded to out's size (P: new -> old ``perm``), float64."""
+    i, j = wp.tid()
+    n = perm.shape[0]
+    v = wp.float64(0.0)
+    if i < n and j < n:
+        v = wp.float64(A[perm[i], perm[j]])
+    out[i, j] = v
+
+
+@wp.kernel
+def haar_level_cols(src: wp.array2d(dtype=wp.float64), dst: wp.array2d(dtype=wp.float64), half: int):
+    """One level of the 1-D Haar transform along every row's first 2 half entries (``haar``):
+    dst[r, j] = (a + b) / sqrt 2, dst[r, half + j] = (a - b) / sqrt 2 for a, b = src[r, 2j], src[r, 2j + 1]."""
+    r, j = wp.tid()
+    a = src[r, 2 * j]
+    b = src[r, 2 * j + 1]
+    dst[r, j] = (a + b) * HALF
+    dst[r, half + j] = (a - b) * HALF
+
+
+@wp.kernel
+def haar_level_rows(src: wp.array2d(dtype=wp.float64), dst: wp.array2d(dtype=wp.float64), half: int):
+    """``haar_level_cols`` along every column's first 2 half entries (rows 2i, 2i + 1)."""
+    i, c = wp.tid()
+    a = src[2 * i, c]
+    b = src[2 * i + 1, c]
+    dst[i, c] = (a + b) * HALF
+    dst[half + i, c] = (a - b) * HALF
+
+
+@wp.kernel
+def copy_corner(src: wp.array2d(dtype=wp.float64), dst: wp.array2d(dtype=wp.float64)):
+    """dst[i, j] = src[i, j] over the launch's (rows, columns): a level's result back in place."""
+    i, j = wp.tid()
+    dst[i, j] = src[i, j]
+
+
+@wp.kernel
+def count_at_least(C: wp.array2d(dtype=wp.float64), t: wp.float64, counts: wp.array(dtype=wp.int32),
+                   kept2: wp.array(dtype=wp.float64)):
+    """Per row: how many |C_ij| >= t (counts) and the sum of their squares (kept2)."""
+    row, lane = wp.tid()
+    n = C.shape[1]
+    c = int(0)
+    s = wp.float64(0.0)
+    j = lane
+    while j < n:
+        v = C[row, j]
+        if wp.abs(v) >= t:
+            c += 1
+            s += v * v
+        j += wp.block_dim()
+    wp.tile_store(counts, wp.tile_sum(wp.tile(c)), offset=row)
+    wp.tile_store(kept2, wp.tile_sum(wp.tile(s)), offset=row)
+
+
+@wp.kernel
+def compact_rows(C: wp.array2d(dtype=wp.float64), t: wp.float64, indptr: wp.array(dtype=wp.int64),
+                 cols: wp.array(dtype=wp.int32), vals: wp.array(dtype=wp.float64)):
+    """The coefficients |C_ij| >= t of row r, in column order, at indptr[r] (CSR)."""
+    r = wp.tid()
+    e = indptr[r]
+    for j in range(C.shape[1]):
+        v = C[r, j]
+        if wp.abs(v) >= t:
+            cols[e] = j
+            vals[e] = v
+            e += wp.int64(1)
+
+
+@wp.kernel
+def dropped_products(C: wp.array2d(dtype=wp.float64), t: wp.float64, X: wp.array2d(dtype=wp.float64),
+                     out: wp.array2d(dtype=wp.float64)):
+    """out[r, k] = sum over the dropped |C_rj| < t of C_rj X[j, k]: (C - C_kept) X, whose column
+    norms are the matvec errors of the kept set on X's columns (orthonormal W)."""
+    row, k, lane = wp.tid()
+    n = C.shape[1]
+    s = wp.float64(0.0)
+    j = lane
+    while j < n:
+        v = C[row, j]
+        if wp.abs(v) < t:
+            s += v * X[j, k]
+        j += wp.block_dim()
+    wp.tile_store(out[row], wp.tile_sum(wp.tile(s)), offset=k)

@@ -148,12 +148,15 @@ def test_compression_options_are_checked() -> None:
 
 
 def test_device_kernels_equal_the_host_compressed_history(cube) -> None:
-    """The Warp kernels (here on the CPU device) of the wavelet-domain history: transforms from
-    prefix sums, the packed sparse sum over 2 n_max matrices and the inverse, against the numpy
-    ``CompressedHistory`` (float32 storage: 1e-5 relative)."""
+    """The Warp kernels (here on the CPU device) of the wavelet-domain history: the forward
+    transform in passes of 4 levels (against numpy's ``haar``, float64; two ring rows alone as a
+    step writes them), the packed sparse sum over
+    2 n_max matrices cut into work items (CHUNK small here, so rows span many items) and the
+    inverse, against the numpy ``CompressedHistory`` (float32 storage: 1e-5 relative)."""
     import warp as wp
 
-    from wsim.bem.compression import compress_history, pack_rows
+    from wsim.bem import stepper
+    from wsim.bem.compression import compress_history, pack_rows, work_items
     from wsim.kernels import bem_compressed as kc
 
     ops = cube[0]
@@ -163,24 +166,32 @@ def test_device_kernels_equal_the_host_compressed_history(cube) -> None:
     U, P = rng.standard_normal((n_max, n)), rng.standard_normal((n_max, n))
     step = 17
     want = ch.history(U, P, step)
+    rows = np.zeros((2 * n_max, size))
+    rows[:n_max, :n], rows[n_max:, :n] = U[:, ch.perm], P[:, ch.perm]
+    sums = stepper.pass_buffers(2 * n_max, size, wp.get_device("cpu"))
+    assert len(sums) == 3  # size 2048: passes of 4, 4 and 3 levels
+    hat = wp.zeros((2 * n_max, size), dtype=wp.float32, device="cpu")
+    Ud, Pd = (wp.array(X.astype(np.float32), dtype=wp.float32, device="cpu") for X in (U, P))
+    perm = wp.array(ch.perm.astype(np.int32), dtype=wp.int32, device="cpu")
+    stepper.haar_rows([(Ud, 0, n_max), (Pd, 0, n_max)], perm, size, sums, hat)
+    np.testing.assert_allclose(hat.numpy(), haar(rows, axis=1), rtol=0, atol=1e-6 * np.abs(rows).max())
+    one = wp.zeros((2 * n_max, size), dtype=wp.float32, device="cpu")  # one row of each into slot 3 (a step's update)
+    stepper.haar_rows([(Ud, 3, 1), (Pd, 3, 1)], perm, size, sums, one, 3, n_max)
+    np.testing.assert_allclose(one.numpy()[[3, n_max + 3]], hat.numpy()[[3, n_max + 3]], rtol=0, atol=1e-12)
 
-    def forward(X: np.ndarray) -> wp.array:
-        rows = np.zeros((len(X), size))
-        rows[:, :n] = X[:, ch.perm]
-        flat = wp.array(rows.ravel(), dtype=wp.float64, device="cpu")
-        S = wp.empty_like(flat)
-        wp.utils.array_scan(flat, S, inclusive=True)
-        out = wp.zeros((len(X), size), dtype=wp.float32, device="cpu")
-        wp.launch(kc.haar_coefficients, dim=(len(X), size), inputs=[S, size, out], device="cpu")
-        np.testing.assert_allclose(out.numpy(), haar(rows, axis=1), rtol=0, atol=1e-5 * np.abs(rows).max())
-        return out
-
-    U_hat, P_hat = forward(U), forward(P)
     bounds, cols, vals = pack_rows([*ch.H, *ch.G])
+    chunk = 64
+    parts = (bounds, cols, vals, *work_items(bounds, chunk))
+    assert np.max(parts[6] - parts[5]) <= chunk  # long parts are cut: more items than (row, matrix) parts
+    assert len(parts[3]) > np.count_nonzero(np.diff(bounds, axis=1))
+    types = (wp.int64, wp.uint16, wp.float32, wp.int32, wp.int32, wp.int64, wp.int64, wp.int64)
+    b, c, v, item_row, item_mat, item_start, item_end, row_items = (
+        wp.array(a, dtype=t, device="cpu") for a, t in zip(parts, types))
+    partial = wp.zeros(len(item_row), dtype=wp.float32, device="cpu")
+    wp.launch_tiled(kc.chunk_sums, dim=len(item_row), block_dim=int(kc.SPMV_BLOCK), device="cpu",
+                    inputs=[item_row, item_mat, item_start, item_end, c, v, hat, n_max, step, partial])
     h_hat = wp.zeros((1, size), dtype=wp.float32, device="cpu")
-    wp.launch_tiled(kc.history_spmv, dim=size, block_dim=int(kc.SPMV_BLOCK), device="cpu",
-                    inputs=[wp.array(bounds, dtype=wp.int64, device="cpu"), wp.array(cols, dtype=wp.uint16, device="cpu"),
-                            wp.array(vals, dtype=wp.float32, device="cpu"), U_hat, P_hat, step, h_hat])
+    wp.launch_tiled(kc.row_sums, dim=size, block_dim=int(kc.SPMV_BLOCK), device="cpu", inputs=[row_items, partial, h_hat])
     h = wp.zeros((1, size), dtype=wp.float32, device="cpu")
     wp.launch(kc.haar_inverse, dim=(1, size), inputs=[h_hat, h], device="cpu")
     got = np.empty(n)
@@ -215,3 +226,72 @@ def test_the_warp_kernels_step_a_compressed_body_like_the_host(device: str) -> N
     host = run("cpu", "blas")
     kern = run(device, "warp")
     assert np.abs(kern - host).max() < 1e-6, np.abs(kern - host).max()  # metres, a 0.2 m body
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
+    not __import__("warp").is_cuda_available(), reason="no CUDA device"))])
+def test_the_device_build_keeps_the_host_coefficients(cube, device: str) -> None:
+    """The Warp build (``DeviceCoefficients``: on the CPU device, the kernels a GPU runs) keeps the
+    same coefficients as numpy, for a ratio and for a target error, and CR 1 stays lossless."""
+    from wsim.bem.compression import compress_history
+
+    ops, H1, perms = cube
+    perm = perms["v+c"]
+    for ratio in (1.0, 8.0):
+        host = compress(H1, perm, ratio=ratio)
+        dev = compress(H1, perm, ratio=ratio, device=device)
+        assert dev.kept == host.kept
+        np.testing.assert_allclose(dev.to_dense(), host.to_dense(), rtol=0, atol=1e-12 * np.abs(H1).max())
+        assert abs(dev.relative_error - host.relative_error) < 1e-9
+    assert np.abs(compress(H1, perm, ratio=1.0, device=device).to_dense() - H1).max() <= 1e-12 * np.abs(H1).max()
+    X = _smooth_fields(ops, 8, seed=3)
+    host = choose_keep(H1, perm, 0.05, X)
+    dev = choose_keep(H1, perm, 0.05, X, device=device)
+    # the device's levels are float32 thresholds: the same choice up to coefficients tied in float32
+    assert abs(dev.kept - host.kept) <= 1e-3 * host.kept + 2, (dev.kept, host.kept)
+    ch = compress_history(ops, ratio=16.0, device=device)
+    ref = compress_history(ops, ratio=16.0)
+    for a, b in zip(ch.matrices, ref.matrices):
+        assert a.kept == b.kept and abs(a.relative_error - b.relative_error) < 1e-9
+
+
+def test_compressed_operators_are_cached_and_restored_rings_follow(tmp_path) -> None:
+    """The compressed set is stored beside the operators (a second body loads it: the same kept
+    coefficients), and a compressed Warp body restored from a checkpoint rebuilds its wavelet-domain
+    rings: it continues exactly like an unbroken run."""
+    from wsim.bem import stepper
+    from wsim.cache import OperatorCache
+
+    cube = wmesh.bumpy_cube(size=0.2, divisions=3, amplitude=0.01)
+    mat = wsim.ElasticMaterial(mu=1e5, nu=0.45, rho=1000.0)
+    store = OperatorCache(tmp_path / "cache")
+    ops = build_operators(cube, mat, 0.005, device="cpu", cache=store)
+    dev = __import__("warp").get_device("cpu")
+    first = stepper.compressed_history(ops, ("ratio", 6.0), dev, store)
+    misses = store.misses
+    again = stepper.compressed_history(ops, ("ratio", 6.0), dev, store)
+    assert store.misses == misses and store.hits >= 1
+    for a, b in zip(first.matrices, again.matrices):
+        assert (a.C != b.C).nnz == 0 and a.kept == b.kept
+
+    def make():
+        world = wsim.World(fps=100, device="cpu")
+        body = world.add(wsim.BemBody(cube, mat, 0.005, operators=ops, matvec="warp", compression=6.0,
+                                      velocity=(0.3, 0.0, 0.0), angular_velocity=(0.0, 0.0, 2.0)))
+        n = body.rest_normals
+        body.add_traction(lambda t: -2e3 * n * (t < 0.02))
+        return world, body
+
+    world, body = make()
+    for _ in range(3):
+        world.step()
+    saved = world.checkpoint(tmp_path / "at3.h5")
+    for _ in range(3):
+        world.step()
+    want = body.points().copy()
+    world2, body2 = make()
+    world2.step()  # a different history in its wavelet rings, replaced by the restore
+    assert world2.restore(saved) == 3
+    for _ in range(3):
+        world2.step()
+    np.testing.assert_allclose(body2.points(), want, rtol=0, atol=1e-7)

@@ -14,6 +14,17 @@ spinning and pushed by a traction pulse is stepped
 and the history matvec alone is timed and compared, in the same run, with the same product through
 torch (``torch.mv`` over the 2 n_max matrices, on the GPU, when torch is importable) and numpy BLAS
 (on the host copies). GB/s counts the matrix bytes read once per pass.
+
+``--compression 8,32`` adds, per ratio CR, the same measurements for a body with compressed
+operators (``BemBody(compression=CR)``, Warp backend: built on the GPU, or on the host on the CPU)
+and, for every body (dense too), a trajectory of ``--compare-steps`` steps from the same start and
+loads: the compressed body's displacement error against the dense one's, over the dense one's
+largest displacement. Compressed history = the sparse pass over the wavelet-domain rings; a step
+also transforms its two new ring vectors (``ring_update_seconds``, counted in
+``history_with_ring_update_seconds`` and in the speed-up against dense). On CUDA the history (and
+ring update) is also captured as a CUDA graph and replayed (``..._graph_seconds``): the device's
+time without Python's per-launch cost, which a compressed pass (8 launches) feels and the dense
+one (1 launch) does not.
 """
 
 from __future__ import annotations
@@ -47,7 +58,8 @@ def _time(fn, repeats: int, sync) -> float:
     return best
 
 
-def run_case(name: str, device: str | None, precision: str, mesh_path: str | None, steps: int) -> dict:
+def run_case(name: str, device: str | None, precision: str, mesh_path: str | None, steps: int,
+             ratios: list[float] | None = None, compare_steps: int = 100) -> dict:
     import warp as wp
 
     import wsim
@@ -69,12 +81,27 @@ def run_case(name: str, device: str | None, precision: str, mesh_path: str | Non
 
     results: dict = {}
     backends = ["warp"] + (["blas"] if dev.is_cpu else [])
-    for backend in backends:
+    cases = [(b, None) for b in backends] + [("warp", r) for r in ratios or []]
+    keep_alive = []  # the shared compressed operator sets outlive the bodies of one case
+
+    def make_body(backend: str, ratio: float | None, profile: bool):
         world = wsim.World(fps=1.0 / dt, device=dev.alias, gravity=(0.0, -9.81, 0.0))
-        body = world.add(wsim.BemBody(mesh, material, dt, operators=ops, matvec=backend, profile=True,
-                                      angular_velocity=(0.0, 2.0, 1.0)))
+        body = world.add(wsim.BemBody(mesh, material, dt, operators=ops, matvec=backend, profile=profile,
+                                      angular_velocity=(0.0, 2.0, 1.0), compression=ratio, cache=False))
         x, nrm = body.rest_vertices, body.rest_normals
         body.add_traction(lambda t: -2e3 * nrm * (x[:, :1] > 0) * (1.0 + np.sin(40.0 * t)))  # a pulsing squeeze
+        return body
+
+    trajectories: dict[str, np.ndarray] = {}
+    for backend, ratio in cases:
+        label = backend if ratio is None else f"{backend} CR {ratio:g}"
+        compress_s = None
+        if ratio is not None:
+            t0 = time.perf_counter()
+            keep_alive.append(stepper.step_operators(ops, dev, backend, ("ratio", ratio), cache=False))
+            sync()
+            compress_s = time.perf_counter() - t0
+        body = make_body(backend, ratio, True)
         body.step()  # compile / first touch
         body.timings = {k: 0.0 for k in body.timings}
         n_prof = max(steps // 2, 5)
@@ -91,10 +118,24 @@ def run_case(name: str, device: str | None, precision: str, mesh_path: str | Non
         uncnst = _time(body.unconstrained_solve, 50, sync)  # UNCNST alone, no per-stage syncs
         so = body._so
         h = so.vectors()
-        hist = _time(lambda: stepper.history(so, body._U_k, body._P_k, body.state.B, body.state.ring, h), 20, sync)
+        hist = _time(lambda: stepper.history(so, body._U_k, body._P_k, body.state.B, body.state.ring, h,
+                                             body._scratch), 20, sync)
+        ring = 0.0
+        slot = (body.state.ring - 1) % so.n_max
+
+        def history_and_ring() -> None:
+            stepper.history(so, body._U_k, body._P_k, body.state.B, body.state.ring, h, body._scratch)
+            stepper.ring_written(so, body._U_k, body._P_k, slot, body._scratch)
+
+        if body._scratch is not None:  # the two vectors a step adds to the wavelet-domain rings
+            ring = _time(lambda: stepper.ring_written(so, body._U_k, body._P_k, slot, body._scratch), 20, sync)
+        graph = None
+        if dev.is_cuda:  # the same launches replayed as one CUDA graph: device time without Python's launch cost
+            with wp.ScopedCapture(device=dev) as capture:
+                history_and_ring()
+            graph = _time(lambda: wp.capture_launch(capture.graph), 50, sync)
         hist_bytes = so.history_bytes
-        matrix_bytes = so.matrix_bytes
-        results[backend] = {
+        out = {
             "seconds_per_step": per_step,
             "stage_seconds_per_step": stage,
             "uncnst_seconds": uncnst,
@@ -102,8 +143,36 @@ def run_case(name: str, device: str | None, precision: str, mesh_path: str | Non
             "errcr_seconds": stage["correction"] + stage["frame"],
             "history_matvec_seconds": hist,
             "history_matvec_GBps": hist_bytes / hist / 1e9,
+            "history_bytes": int(hist_bytes),
+            "history_with_ring_update_graph_seconds": graph,
+            "step_matrix_bytes": int(so.matrix_bytes),
             "max_displacement": float(np.max(np.abs(body.displacement()))),
         }
+        if ratio is not None:
+            dense = results["warp"]
+            out.update({
+                "compression_ratio": ratio, "compressed_on": dev.alias, "compress_seconds": round(compress_s, 2),
+                "kept_ratio_measured": so.compressed.ratio,
+                "ring_update_seconds": ring, "history_with_ring_update_seconds": hist + ring,
+                "history_speedup_vs_dense": dense["history_matvec_seconds"] / (hist + ring),
+                "history_speedup_vs_dense_graph": (dense["history_with_ring_update_graph_seconds"] / graph
+                                                   if graph else None),
+                "history_memory_ratio_vs_dense": dense["history_bytes"] / hist_bytes,
+                "uncnst_speedup_vs_dense": dense["uncnst_seconds"] / uncnst,
+                "relative_frobenius_error_H1": so.compressed.H[0].relative_error,
+            })
+        if ratios and compare_steps > 0:  # the same run from the start, for the trajectory error
+            fresh = make_body(backend, ratio, False)
+            traj = []
+            for _ in range(compare_steps):
+                fresh.step()
+                traj.append(fresh.displacement().copy())
+            trajectories[label] = np.array(traj)
+            if ratio is not None:
+                ref = trajectories["warp"]
+                out["trajectory_error_vs_dense"] = float(np.abs(trajectories[label] - ref).max() / np.abs(ref).max())
+                out["trajectory_steps"] = compare_steps
+        results[label] = out
     # the same history product through the reference a user would otherwise reach for
     n3 = 3 * ops.n_nodes
     refs: dict = {}
@@ -160,7 +229,7 @@ def run_case(name: str, device: str | None, precision: str, mesh_path: str | Non
         "precision": precision,
         "dt": dt,
         "build_seconds": round(build_s, 2),
-        "matrix_bytes_per_step": int(matrix_bytes),
+        "matrix_bytes_per_step": results["warp"]["step_matrix_bytes"],
         "backends": results,
         "references": refs,
         "warp_vs_torch_bandwidth": (warp_gbps / torch_gbps) if torch_gbps else None,
@@ -177,16 +246,20 @@ def main() -> None:
     ap.add_argument("--precision", default="float32")
     ap.add_argument("--mesh", default=None, help="mesh file for case 'mesh'")
     ap.add_argument("--steps", type=int, default=200)
+    ap.add_argument("--compression", default="", help="compression ratios to add, e.g. 8,32")
+    ap.add_argument("--compare-steps", type=int, default=100)
     ap.add_argument("--one", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.one:
-        print(json.dumps(run_case(args.one, args.device, args.precision, args.mesh, args.steps)), flush=True)
+        ratios = [float(r) for r in args.compression.split(",") if r]
+        print(json.dumps(run_case(args.one, args.device, args.precision, args.mesh, args.steps, ratios,
+                                  args.compare_steps)), flush=True)
         return
     for name in args.cases.split(","):
         if name not in CASES:
             raise SystemExit(f"unknown case {name!r}; known: {', '.join(CASES)}")
         cmd = [sys.executable, os.path.abspath(__file__), "--one", name, "--precision", args.precision,
-               "--steps", str(args.steps)]
+               "--steps", str(args.steps), "--compression", args.compression, "--compare-steps", str(args.compare_steps)]
         for flag, value in (("--device", args.device), ("--mesh", args.mesh)):
             if value is not None:
                 cmd += [flag, str(value)]

@@ -420,7 +420,8 @@ class BemBody(VertexImpulses, Body):
         if self._compression is not None and backend == "warp" and ops.precision != "float32":
             raise InvalidParameter(f"body '{self.name}': compressed operators on the Warp backend need "
                                    f"precision='float32' (got {ops.precision!r})")
-        self._so = so = stepper.step_operators(ops, device, backend, self._compression)
+        self._so = so = stepper.step_operators(ops, device, backend, self._compression,
+                                               self._build_args.get("cache", True))
         self._scratch = stepper.CompressedScratch(so) if so.packed is not None else None
         self._gravity = np.asarray(gravity, dtype=np.float64)
         self._inertia = ops.inertia
@@ -455,6 +456,8 @@ class BemBody(VertexImpulses, Body):
         self._window_length = max(ops.n_max, 20)  # steps per window of the growth check
 
     def _state_loaded(self) -> None:
+        if self._scratch is not None:  # the wavelet-domain rings follow the restored ones
+            self._scratch.stale = True
         if self.state.coupling_until >= 0.0:  # a restored push still to deliver
             self._register_coupling()
         # the traction buffer is scratch: cleared, so an unloaded next step needs nothing from it
@@ -894,6 +897,7 @@ class BemBody(VertexImpulses, Body):
         wp.copy(st.U, self._u_in, dest_offset=slot * so.pitch, count=n3)
         wp.copy(st.P, self._p, dest_offset=slot * so.pitch, count=n3)
         wp.copy(st.B, self._b_in, dest_offset=slot * 6, count=6)
+        stepper.ring_written(so, self._U_k, self._P_k, slot, self._scratch)
         if self.frame_update:
             T_old, R_old = f.T.copy(), f.R.copy()
             f.update(self.dt, self._gravity, b[:3], b[3:], self._inertia, self._inertia_inv, self.gyroscopic)

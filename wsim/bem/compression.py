@@ -237,10 +237,58 @@ def _from_coefficients(coeffs: np.ndarray, n: int, perm: np.ndarray, keep: int, 
     return CompressedMatrix(n=n, perm=np.asarray(perm, dtype=np.int64), C=C, norm=norm, dropped=float(np.sqrt(dropped2)))
 
 
+class HostCoefficients:
+    """The Haar coefficients C = W P A P^T W^T of one matrix in host memory (numpy: the CPU build).
+
+    What ``compress`` and ``choose_keep`` ask of a coefficient set (``DeviceCoefficients`` answers
+    the same on a Warp device): a *level* is an integer in ``levels`` (inclusive) and more level
+    keeps more coefficients, the largest first; here the level is the count kept."""
+
+    def __init__(self, A: np.ndarray, perm: np.ndarray) -> None:
+        self.n = int(A.shape[0])
+        self.perm = np.asarray(perm, dtype=np.int64)
+        self.coeffs = transform(A, perm)
+        self.size = self.coeffs.shape[0]
+        self.norm = float(np.linalg.norm(A))
+        self.levels = (1, self.coeffs.size)
+        self._order: np.ndarray | None = None
+        self._full: dict[int, np.ndarray] = {}  # C X_hat per tuning block (by identity)
+
+    def level_for(self, keep: int) -> int:
+        return int(min(max(keep, 1), self.coeffs.size))
+
+    def dropped(self, level: int, X_hat: np.ndarray) -> np.ndarray:
+        """(C - C_kept) X_hat for the coefficients kept at ``level``."""
+        if self._order is None:
+            self._order = np.argsort(np.abs(self.coeffs).ravel())[::-1]
+        full = self._full.get(id(X_hat))
+        if full is None:
+            full = self._full[id(X_hat)] = self.coeffs @ X_hat
+        r, c = np.divmod(self._order[:level], self.size)
+        kept = sp.csr_matrix((self.coeffs[r, c], (r, c)), shape=self.coeffs.shape)
+        return full - kept @ X_hat
+
+    def extract(self, level: int) -> CompressedMatrix:
+        return _from_coefficients(self.coeffs, self.n, self.perm, level, self.norm)
+
+
+def coefficients(A: np.ndarray, perm: np.ndarray, device=None, reuse=None):
+    """The coefficient set of A under ``perm``: on the host (numpy) for ``device`` None, else on
+    that Warp device (``DeviceCoefficients``; float64, the whole padded matrix on the device;
+    ``reuse`` a previous one of the same size, whose device memory is taken over)."""
+    if device is None:
+        return HostCoefficients(np.asarray(A), perm)
+    from wsim.bem.compression_device import DeviceCoefficients
+
+    coef = reuse if reuse is not None else DeviceCoefficients(np.asarray(A).shape[0], device)
+    return coef.load(A, perm)
+
+
 def compress(A: np.ndarray, perm: np.ndarray | None = None, ratio: float | None = None,
-             keep: int | None = None) -> CompressedMatrix:
+             keep: int | None = None, device=None) -> CompressedMatrix:
     """A (n x n) compressed with the permutation ``perm`` (default: none) keeping ``keep``
-    coefficients or n^2 / ``ratio`` of them (ratio 1: all, lossless to round-off)."""
+    coefficients or n^2 / ``ratio`` of them (ratio 1: all, lossless to round-off); the transform
+    and the choice on the host (``device`` None) or on a Warp device."""
     A = np.asarray(A)
     n = A.shape[0]
     if A.ndim != 2 or A.shape[1] != n:
@@ -252,10 +300,11 @@ def compress(A: np.ndarray, perm: np.ndarray | None = None, ratio: float | None 
         if not ratio >= 1.0:
             raise InvalidParameter(f"compress: compression ratio {ratio} must be >= 1")
         keep = int(round(n * n / ratio))
-    coeffs = transform(A, perm)
-    if ratio == 1.0:
-        keep = coeffs.size  # everything, padding included (it is zero)
-    return _from_coefficients(coeffs, n, perm, int(keep), float(np.linalg.norm(A)))
+    return _keep_count(coefficients(A, perm, device), ratio, int(keep))
+
+
+def _keep_count(coef, ratio: float | None, keep: int) -> CompressedMatrix:
+    return coef.extract(coef.levels[1] if ratio == 1.0 else coef.level_for(keep))  # CR 1: everything
 
 
 def prune(A: np.ndarray, ratio: float) -> tuple[np.ndarray, float]:
@@ -268,40 +317,39 @@ def prune(A: np.ndarray, ratio: float) -> tuple[np.ndarray, float]:
     return out, float(np.linalg.norm(A - out) / np.linalg.norm(A))
 
 
-def choose_keep(A: np.ndarray, perm: np.ndarray, eps: float, vectors: np.ndarray) -> CompressedMatrix:
+def choose_keep(A: np.ndarray, perm: np.ndarray, eps: float, vectors: np.ndarray, device=None) -> CompressedMatrix:
     """The fewest largest coefficients whose relative matvec error ||(A - A_c) x|| / ||A x|| stays
     below ``eps`` for the columns x of ``vectors`` (n x k, k >= 2; e.g. the history vectors of a
     run), with a margin for vectors it has not seen: the count is chosen on one half of the
     columns and checked on the other (and the other way round); while the unseen half exceeds
     ``MARGIN`` eps, the target tightens by 0.7. The error falls as more are kept, so each choice
-    is a bisection. A guarantee for vectors of the same kind as the tuning ones, not for any
-    vector: one with ||A x|| far below ||A|| ||x|| can have any relative error."""
+    is a bisection (over the coefficient set's levels: on the host or on a Warp ``device``). A
+    guarantee for vectors of the same kind as the tuning ones, not for any vector: one with
+    ||A x|| far below ||A|| ||x|| can have any relative error."""
+    A = np.asarray(A)
+    return _keep_error(coefficients(A, perm, device), A, eps, vectors)
+
+
+def _keep_error(coef, A: np.ndarray, eps: float, vectors: np.ndarray) -> CompressedMatrix:
+    """``choose_keep`` on a coefficient set of A."""
     if not eps > 0.0:
         raise InvalidParameter(f"compression_error = {eps} must be > 0")
-    A = np.asarray(A)
     n = A.shape[0]
     X = np.asarray(vectors, dtype=np.float64).reshape(n, -1)
     if X.shape[1] < 2:
         raise InvalidParameter("compression_error: at least two tuning vectors are needed")
-    coeffs = transform(A, perm)
-    norm = float(np.linalg.norm(A))
-    ref = A @ X
-    ref_norm = np.maximum(np.linalg.norm(ref, axis=0), 1e-300)
-    Xh = to_wavelet(X, perm, coeffs.shape[0])  # W P x, once
-    order = np.argsort(np.abs(coeffs).ravel())[::-1]
-    rows, cols = np.divmod(order, coeffs.shape[0])
+    ref_norm = np.maximum(np.linalg.norm(A @ X.astype(A.dtype, copy=False), axis=0).astype(np.float64), 1e-300)
+    Xh = to_wavelet(X, coef.perm, coef.size)  # W P x, once
+    halves = (np.arange(0, X.shape[1], 2), np.arange(1, X.shape[1], 2))
+    everything = np.arange(X.shape[1])
+    X_parts = {id(c): np.ascontiguousarray(Xh[:, c]) for c in (*halves, everything)}
 
-    full = coeffs @ Xh  # C W P x: the kept part is subtracted from it
-
-    def errors(keep: int, cols_x: np.ndarray) -> np.ndarray:
-        """Relative matvec errors of the ``keep`` largest coefficients on the columns cols_x:
-        ||W^T (C - C_keep) W P x|| = ||C W P x - C_keep W P x|| by orthonormality."""
-        r, c = rows[:keep], cols[:keep]
-        kept = sp.csr_matrix((coeffs[r, c], (r, c)), shape=coeffs.shape)
-        return np.linalg.norm(full[:, cols_x] - kept @ Xh[:, cols_x], axis=0) / ref_norm[cols_x]
+    def errors(level: int, cols_x: np.ndarray) -> np.ndarray:
+        """||W^T (C - C_kept) W P x|| / ||A x|| = ||(C - C_kept) W P x|| / ||A x|| (orthonormal W)."""
+        return np.linalg.norm(coef.dropped(level, X_parts[id(cols_x)]), axis=0) / ref_norm[cols_x]
 
     def fewest(target: float, cols_x: np.ndarray) -> int:
-        lo, hi = 1, int(np.count_nonzero(coeffs)) or 1
+        lo, hi = coef.levels
         while lo < hi:
             mid = (lo + hi) // 2
             if errors(mid, cols_x).max() <= target:
@@ -310,15 +358,13 @@ def choose_keep(A: np.ndarray, perm: np.ndarray, eps: float, vectors: np.ndarray
                 lo = mid + 1
         return hi
 
-    halves = (np.arange(0, X.shape[1], 2), np.arange(1, X.shape[1], 2))
-    target, keep = eps, coeffs.size
+    target, level = eps, coef.levels[1]
     for _ in range(20):
-        keep = max(fewest(target, h) for h in halves)
+        level = max(fewest(target, h) for h in halves)
         if all(errors(fewest(target, a), b).max() <= MARGIN * eps for a, b in (halves, halves[::-1])):
             break
         target *= 0.7
-    keep = max(keep, fewest(eps, np.arange(X.shape[1])))
-    return _from_coefficients(coeffs, n, perm, keep, norm)
+    return coef.extract(max(level, fewest(eps, everything)))
 
 
 def smooth_fields(nodes: np.ndarray, k: int, seed: int = 0) -> np.ndarray:
@@ -385,27 +431,35 @@ class CompressedHistory:
 
 
 def compress_history(ops, ratio: float | None = None, error: float | None = None,
-                     vectors: np.ndarray | None = None) -> CompressedHistory:
+                     vectors: np.ndarray | None = None, device=None) -> CompressedHistory:
     """Compress ``ops``' (``BemOperators``) H_k, G_k (k >= 1) and H_0^-1 with the v+c ordering:
     at one compression ``ratio`` (the paper's CR), or each with the fewest coefficients whose
-    relative matvec error stays below ``error`` on ``vectors`` (default: 32 ``smooth_fields``)."""
+    relative matvec error stays below ``error`` on ``vectors`` (default: 32 ``smooth_fields``).
+    The transforms and choices run on the host (``device`` None) or on a Warp device (one
+    ``DeviceCoefficients`` reused for every matrix)."""
     if (ratio is None) == (error is None):
         raise InvalidParameter("give exactly one of compression (a ratio CR >= 1) or compression_error (eps > 0)")
     s = ops.surface
+    n = 3 * s.n_nodes
     perm = permutation(s.n_nodes, "v+c", node_order(s.nodes, s.faces, s.vertex))
+    X = None
     if error is not None:
         X = smooth_fields(s.nodes, 32, seed=0) if vectors is None else vectors
+    work = None
 
-        def one(A: np.ndarray) -> CompressedMatrix:
-            return choose_keep(np.asarray(A, dtype=np.float64), perm, error, X)
-        spec = f"error={error:g}"
-    else:
-        def one(A: np.ndarray) -> CompressedMatrix:
-            return compress(np.asarray(A, dtype=np.float64), perm, ratio=ratio)
-        spec = f"ratio={ratio:g}"
+    def one(A: np.ndarray) -> CompressedMatrix:
+        nonlocal work
+        coef = coefficients(A, perm, device, reuse=work)
+        work = coef if device is not None else None
+        if X is not None:
+            return _keep_error(coef, A, error, X)
+        return _keep_count(coef, ratio, int(round(n * n / ratio)))
+
     n_max = ops.n_max
-    return CompressedHistory(perm=perm, H=tuple(one(ops.H[k]) for k in range(1, n_max + 1)),
-                             G=tuple(one(ops.G[k]) for k in range(1, n_max + 1)), H0_inv=one(ops.H0_inv), spec=spec)
+    out = CompressedHistory(perm=perm, H=tuple(one(ops.H[k]) for k in range(1, n_max + 1)),
+                            G=tuple(one(ops.G[k]) for k in range(1, n_max + 1)), H0_inv=one(ops.H0_inv),
+                            spec=f"error={error:g}" if error is not None else f"ratio={ratio:g}")
+    return out
 
 
 def pack_rows(matrices: Sequence[CompressedMatrix]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -429,3 +483,22 @@ def pack_rows(matrices: Sequence[CompressedMatrix]) -> tuple[np.ndarray, np.ndar
         cols[dest] = c.indices
         vals[dest] = c.data
     return bounds, cols, vals
+
+
+def work_items(bounds: np.ndarray, chunk: int) -> tuple[np.ndarray, ...]:
+    """The rows of a ``pack_rows`` layout cut into work items, each part of one matrix's part of one
+    row and at most ``chunk`` coefficients long (``wsim.kernels.bem_compressed.chunk_sums``):
+    (item row int32, item matrix int32, item start int64, item end int64, row_items (size + 1)
+    int64: the items of row r are row_items[r] .. row_items[r + 1])."""
+    size, J = bounds.shape[0], bounds.shape[1] - 1
+    start, end = bounds[:, :J].ravel(), bounds[:, 1:].ravel()  # segment (row, j), row-major
+    per_seg = -(-(end - start) // chunk)
+    per_row = per_seg.reshape(size, J).sum(axis=1)
+    row_items = np.concatenate([[0], np.cumsum(per_row)]).astype(np.int64)
+    seg = np.repeat(np.arange(size * J), per_seg)
+    first = np.concatenate([[0], np.cumsum(per_seg)])[:-1]
+    local = np.arange(len(seg)) - first[seg]
+    item_start = start[seg] + local * chunk
+    item_end = np.minimum(item_start + chunk, end[seg])
+    return ((seg // J).astype(np.int32), (seg % J).astype(np.int32), item_start.astype(np.int64),
+            item_end.astype(np.int64), row_items)

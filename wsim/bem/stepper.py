@@ -34,6 +34,7 @@ import warp as wp
 from wsim.bem.correction import Correction
 from wsim.bem.operators import PRECISIONS, BemOperators
 from wsim.errors import InvalidParameter
+from wsim.kernels import bem_compressed as kc
 from wsim.kernels import bem_step as ks
 
 BACKENDS = ("auto", "warp", "blas")
@@ -76,17 +77,25 @@ class StepOperators:
         """3N, the length of u and p."""
         return 3 * self.operators.n_nodes
 
+    def _stored_bytes(self, part: str) -> int:
+        """Bytes of the compressed ``part`` ("history" or "H0_inv") as stored for the passes: the
+        packed device arrays (Warp) or the host CSR matrices (BLAS)."""
+        if self.packed is not None:
+            return int(sum(a.capacity for a in self.packed[part]))
+        mats = (*self.compressed.H, *self.compressed.G) if part == "history" else (self.compressed.H0_inv,)
+        return int(sum(m.nbytes for m in mats))
+
     @property
     def history_bytes(self) -> int:
         """Bytes the history pass reads: 2 n_max dense (or compressed) matrices and the small blocks."""
         if self.compressed is not None:
-            return int(sum(m.nbytes for m in (*self.compressed.H, *self.compressed.G)) + self.DQ.capacity)
+            return self._stored_bytes("history") + int(self.DQ.capacity)
         return int(self.H.capacity + self.G.capacity + self.DQ.capacity)
 
     @property
     def matrix_bytes(self) -> int:
         """Bytes a step with tractions reads: 2 n_max + 2 dense (or compressed) matrices and the small blocks."""
-        h0 = self.compressed.H0_inv.nbytes if self.compressed is not None else self.H0_inv.capacity
+        h0 = self._stored_bytes("H0_inv") if self.compressed is not None else self.H0_inv.capacity
         return self.history_bytes + int(h0 + self.H0_inv_Gp.capacity)
 
     def vectors(self, rows: int | None = None) -> wp.array:
@@ -120,16 +129,16 @@ _SHARED: weakref.WeakValueDictionary = weakref.WeakValueDictionary()
 
 
 def step_operators(ops: BemOperators, device: wp.Device, backend: str,
-                   compression: tuple[str, float] | None = None) -> StepOperators:
+                   compression: tuple[str, float] | None = None, cache: Any = True) -> StepOperators:
     """The (shared) device copy of ``ops`` for ``device`` and a resolved ``backend``; with
     ``compression`` (("ratio", CR) or ("error", eps)) the history matrices compressed
-    (``wsim.bem.compression.compress_history``; the BLAS backend, CPU)."""
+    (``compressed_history``: built on the GPU or the host, kept in the operator ``cache``)."""
     key = (ops.key or f"id{id(ops)}", device.alias, backend, compression)  # the content key covers precision and inputs
     found = _SHARED.get(key)
     if found is not None:
         return found
     if compression is not None:
-        return _compressed_step_operators(ops, device, backend, compression, key)
+        return _compressed_step_operators(ops, device, backend, compression, key, cache)
     dtype = PRECISIONS[ops.precision]
     wdt = wp.float32 if dtype == np.float32 else wp.float64
     n3 = 3 * ops.n_nodes
@@ -156,16 +165,78 @@ def step_operators(ops: BemOperators, device: wp.Device, backend: str,
     return out
 
 
+#: bump when the stored compressed arrays or their meaning change
+COMPRESSED_FORMAT = 1
+
+
+def _compressed_arrays(ch: Any, dtype: Any) -> dict[str, np.ndarray]:
+    """A ``CompressedHistory`` as cache datasets: the permutation and, per matrix, its CSR (values
+    in the operators' precision) and (norm, dropped)."""
+    out: dict[str, np.ndarray] = {"perm": ch.perm, "spec": np.frombuffer(ch.spec.encode(), dtype=np.uint8)}
+    for name, m in zip(_compressed_names(len(ch.H)), ch.matrices):
+        out[f"{name}_indptr"] = m.C.indptr.astype(np.int64)
+        out[f"{name}_indices"] = m.C.indices.astype(np.int32)
+        out[f"{name}_data"] = m.C.data.astype(dtype)
+        out[f"{name}_norms"] = np.array([m.norm, m.dropped])
+    return out
+
+
+def _compressed_names(n_max: int) -> list[str]:
+    return [*(f"H{k}" for k in range(1, n_max + 1)), *(f"G{k}" for k in range(1, n_max + 1)), "H0_inv"]
+
+
+def _compressed_from_arrays(a: dict[str, np.ndarray], n: int, n_max: int) -> Any:
+    import scipy.sparse as sp
+
+    from wsim.bem.compression import CompressedHistory, CompressedMatrix, _pow2
+
+    size = _pow2(n)
+    perm = np.asarray(a["perm"], dtype=np.int64)
+    mats = []
+    for name in _compressed_names(n_max):
+        C = sp.csr_matrix((a[f"{name}_data"].astype(np.float64), a[f"{name}_indices"], a[f"{name}_indptr"]),
+                          shape=(size, size))
+        norm, dropped = a[f"{name}_norms"].tolist()
+        mats.append(CompressedMatrix(n=n, perm=perm, C=C, norm=norm, dropped=dropped))
+    return CompressedHistory(perm=perm, H=tuple(mats[:n_max]), G=tuple(mats[n_max: 2 * n_max]), H0_inv=mats[-1],
+                             spec=bytes(a["spec"]).decode())
+
+
+def compressed_history(ops: BemOperators, compression: tuple[str, float], device: wp.Device,
+                       cache: Any = True) -> Any:
+    """``compress_history`` of ``ops`` (built on ``device`` when it is a GPU, else on the host with
+    numpy), through the operator cache (``cache``: True, False or an ``OperatorCache``) when the
+    operator set has a content key."""
+    from wsim.bem.compression import compress_history
+    from wsim.cache import OperatorCache
+
+    how, value = compression
+    dtype = PRECISIONS[ops.precision]
+
+    def build() -> dict[str, np.ndarray]:
+        ch = compress_history(ops, ratio=value if how == "ratio" else None, error=value if how == "error" else None,
+                              device=device if device.is_cuda else None)
+        return _compressed_arrays(ch, dtype)
+
+    if cache is False or not ops.key:
+        arrays = build()
+    else:
+        store = cache if isinstance(cache, OperatorCache) else OperatorCache()
+        arrays = store.get_or_build("bem_compressed", arrays={}, version=COMPRESSED_FORMAT, build=build,
+                                    params={"operators": ops.key, "how": how, "value": float(value)},
+                                    meta={"n_nodes": ops.n_nodes, "n_max": ops.n_max, "compression": f"{how}={value:g}"})
+    return _compressed_from_arrays(arrays, 3 * ops.n_nodes, ops.n_max)
+
+
 def _compressed_step_operators(ops: BemOperators, device: wp.Device, backend: str, compression: tuple[str, float],
-                               key: tuple) -> StepOperators:
+                               key: tuple, cache: Any) -> StepOperators:
     """H_k, G_k, H_0^-1 compressed (``CompressedHistory``): on the host for the BLAS backend, packed
     for ``wsim.kernels.bem_compressed`` for the Warp backend (float32 operators); H_0^-1 G' dense."""
-    from wsim.bem.compression import compress_history, pack_rows
+    from wsim.bem.compression import pack_rows, work_items
 
     if backend == "warp" and ops.precision != "float32":
         raise InvalidParameter("compressed operators on the Warp backend need float32 operators (precision='float32')")
-    how, value = compression
-    ch = compress_history(ops, ratio=value if how == "ratio" else None, error=value if how == "error" else None)
+    ch = compressed_history(ops, compression, device, cache)
     dtype = PRECISIONS[ops.precision]
     wdt = wp.float32 if dtype == np.float32 else wp.float64
     n3 = 3 * ops.n_nodes
@@ -175,10 +246,12 @@ def _compressed_step_operators(ops: BemOperators, device: wp.Device, backend: st
         H0_inv_Gp = _upload_padded(ops.H0_inv_Gp, dtype, wdt, pitch, device)
         vec4 = {"H0_inv_Gp": vec4_view(H0_inv_Gp)}
 
-        def arrays(mats) -> tuple[wp.array, wp.array, wp.array]:
+        def arrays(mats) -> tuple[wp.array, ...]:
+            """(cols, vals, item_row, item_mat, item_start, item_end, row_items) on the device."""
             b, c, v = pack_rows(mats)
-            return (wp.array(b, dtype=wp.int64, device=device), wp.array(c, dtype=wp.uint16, device=device),
-                    wp.array(v, dtype=wp.float32, device=device))
+            parts = (c, v, *work_items(b, kc.CHUNK))
+            types = (wp.uint16, wp.float32, wp.int32, wp.int32, wp.int64, wp.int64, wp.int64)
+            return tuple(wp.array(a, dtype=t, device=device) for a, t in zip(parts, types))
 
         packed = {"perm": wp.array(ch.perm.astype(np.int32), dtype=wp.int32, device=device), "size": ch.size,
                   "history": arrays([*ch.H, *ch.G]), "H0_inv": arrays([ch.H0_inv])}
@@ -197,18 +270,20 @@ def _compressed_step_operators(ops: BemOperators, device: wp.Device, backend: st
 
 
 class CompressedScratch:
-    """One body's work arrays for the compressed Warp passes (``history``, ``solve``)."""
+    """One body's arrays for the compressed Warp passes: the rings in the wavelet domain
+    (``hat``: rows 0..n_max-1 W P u, rows n_max.. W P p, slot m holding step m mod n_max), kept
+    current by ``ring_written`` after each step (two vectors transformed) and rebuilt whole when
+    ``stale`` (a new or restored state), and the work arrays."""
 
     def __init__(self, so: StepOperators) -> None:
         size, n_max, d = so.packed["size"], so.n_max, so.device
-        self.rows = wp.zeros(2 * n_max * size, dtype=wp.float64, device=d)
-        self.S = wp.zeros_like(self.rows)
+        self.sums = pass_buffers(2 * n_max, size, d)
         self.hat = wp.zeros((2 * n_max, size), dtype=wp.float32, device=d)
-        self.one = wp.zeros(size, dtype=wp.float64, device=d)
-        self.S1 = wp.zeros_like(self.one)
+        self.stale = True
         self.one_hat = wp.zeros((1, size), dtype=wp.float32, device=d)
         self.y_hat = wp.zeros((1, size), dtype=wp.float32, device=d)
-        self.y = wp.zeros((1, size), dtype=wp.float32, device=d)
+        items = max(len(so.packed["history"][2]), len(so.packed["H0_inv"][2]))
+        self.partial = wp.zeros(items, dtype=wp.float32, device=d)
 
 
 def _scalar(a: wp.array, so: StepOperators) -> wp.array:
@@ -217,49 +292,80 @@ def _scalar(a: wp.array, so: StepOperators) -> wp.array:
     return wp.array(ptr=a.ptr, dtype=so.dtype, shape=(*a.shape[:-1], n), device=a.device, copy=False)
 
 
-def _transform(so: StepOperators, src: wp.array, rows: int, buf: wp.array, S: wp.array, out: wp.array) -> None:
-    """``out`` (rows, size) = W P of the rows of ``src`` (rows, pitch): gather, one scan, coefficients."""
-    from wsim.kernels import bem_compressed as kc
+def pass_buffers(rows: int, size: int, device: wp.Device) -> list[wp.array]:
+    """The block-sum arrays of the passes of ``haar_rows`` for up to ``rows`` rows of ``size``."""
+    out, count = [], size
+    while count > 1:
+        count //= min(kc.PASS_GROUP, count)
+        out.append(wp.zeros((rows, count), dtype=wp.float64, device=device))
+    return out
 
-    size, perm = so.packed["size"], so.packed["perm"]
-    wp.launch(kc.gather_rows, dim=(rows, size), inputs=[src, perm, size, buf], device=so.device)
-    wp.utils.array_scan(buf, S, inclusive=True)
-    wp.launch(kc.haar_coefficients, dim=(rows, size), inputs=[S, size, out], device=so.device)
+
+def haar_rows(sources: list[tuple[wp.array, int, int]], perm: wp.array, size: int, sums: list[wp.array],
+              out: wp.array, row0: int = 0, row_stride: int = 1) -> None:
+    """W P of rows: ``sources`` lists (float32 array (rows, >= len(perm)), first row, rows); those
+    rows, reordered by ``perm`` (new -> old) and zero padded to ``size`` (a power of two), go in
+    order to out[row0 + r row_stride] (float32): one ``haar_first_pass`` launch per source, then
+    ``haar_pass`` launches on all of them (log2(size) / 4 in all); ``sums`` from ``pass_buffers``."""
+    group = min(kc.PASS_GROUP, size)
+    total = 0
+    for src, first, rows in sources:
+        wp.launch(kc.haar_first_pass, dim=(rows, size // group), device=src.device,
+                  inputs=[src, first, perm, group, size, row0 + total * row_stride, row_stride, total],
+                  outputs=[out, sums[0]])
+        total += rows
+    count, k = size // group, 0
+    while count > 1:
+        group = min(kc.PASS_GROUP, count)
+        wp.launch(kc.haar_pass, dim=(total, count // group), inputs=[sums[k][:total], group, size, row0, row_stride],
+                  outputs=[out, sums[k + 1][:total]], device=out.device)
+        count, k = count // group, k + 1
+
+
+def _transform(so: StepOperators, sources: list[tuple[wp.array, int, int]], sc: CompressedScratch,
+               out: wp.array, row0: int, row_stride: int) -> None:
+    haar_rows(sources, so.packed["perm"], so.packed["size"], sc.sums, out, row0, row_stride)
+
+
+def ring_written(so: StepOperators, U: wp.array, P: wp.array, slot: int, scratch: CompressedScratch | None) -> None:
+    """Ring slot ``slot`` of U and P (vec4 views or plain) now holds the step's u and p: for a
+    compressed Warp body, their wavelet images enter the wavelet-domain rings (two vectors)."""
+    if scratch is None or scratch.stale:
+        return  # nothing kept in the wavelet domain, or rebuilt whole at the next history
+    _transform(so, [(_scalar(U, so), slot, 1), (_scalar(P, so), slot, 1)], scratch, scratch.hat, slot, so.n_max)
+
+
+def _sparse_sum(so: StepOperators, part: str, X: wp.array, n_max: int, step: int, sc: CompressedScratch) -> None:
+    """sc.y_hat = the packed ``part``'s product with X (``chunk_sums`` then ``row_sums``)."""
+    cols, vals, item_row, item_mat, item_start, item_end, row_items = so.packed[part]
+    wp.launch_tiled(kc.chunk_sums, dim=len(item_row), block_dim=int(kc.SPMV_BLOCK), device=so.device,
+                    inputs=[item_row, item_mat, item_start, item_end, cols, vals, X, n_max, step, sc.partial])
+    wp.launch_tiled(kc.row_sums, dim=so.packed["size"], block_dim=int(kc.SPMV_BLOCK), device=so.device,
+                    inputs=[row_items, sc.partial, sc.y_hat])
 
 
 def _compressed_history(so: StepOperators, U: wp.array, P: wp.array, B: wp.array, step: int, h: wp.array,
                         sc: CompressedScratch) -> None:
-    from wsim.kernels import bem_compressed as kc
-
-    n_max, size = so.n_max, so.packed["size"]
-    Us, Ps = _scalar(U, so), _scalar(P, so)
-    _transform(so, Us, n_max, sc.rows[: n_max * size], sc.S[: n_max * size], sc.hat[:n_max])
-    _transform(so, Ps, n_max, sc.rows[n_max * size:], sc.S[n_max * size:], sc.hat[n_max:])
-    bounds, cols, vals = so.packed["history"]
-    wp.launch_tiled(kc.history_spmv, dim=size, block_dim=int(kc.SPMV_BLOCK), device=so.device,
-                    inputs=[bounds, cols, vals, sc.hat[:n_max], sc.hat[n_max:], step, sc.y_hat])
-    wp.launch(kc.haar_inverse, dim=(1, size), inputs=[sc.y_hat, sc.y], device=so.device)
-    wp.launch(kc.scatter_history, dim=so.size, inputs=[sc.y, so.packed["perm"], so.DQ, B, step, _scalar(h, so)],
+    n_max = so.n_max
+    if sc.stale:  # the whole rings, once
+        _transform(so, [(_scalar(U, so), 0, n_max), (_scalar(P, so), 0, n_max)], sc, sc.hat, 0, 1)
+        sc.stale = False
+    _sparse_sum(so, "history", sc.hat, n_max, step, sc)
+    wp.launch(kc.inverse_history, dim=so.size, inputs=[sc.y_hat, so.packed["perm"], so.DQ, B, step, _scalar(h, so)],
               device=so.device)
 
 
 def _compressed_solve(so: StepOperators, p: wp.array | None, h: wp.array, u: wp.array, sc: CompressedScratch) -> None:
-    from wsim.kernels import bem_compressed as kc
-
-    size = so.packed["size"]
     if p is not None:  # u = H_0^-1 G' p (dense: the constraint solver reads it too)
         wp.launch_tiled(ks.solve_matvec, dim=so.size, block_dim=int(ks.MATVEC_BLOCK), device=so.device,
                         inputs=[so.vec4["H0_inv_Gp"], so.vec4["H0_inv_Gp"], p, p, 0, u])
     else:
         u.zero_()
     hs = _scalar(h, so)
-    _transform(so, wp.array(ptr=hs.ptr, dtype=so.dtype, shape=(1, so.pitch), device=so.device, copy=False), 1, sc.one,
-               sc.S1, sc.one_hat)
-    bounds, cols, vals = so.packed["H0_inv"]
-    wp.launch_tiled(kc.rows_spmv, dim=size, block_dim=int(kc.SPMV_BLOCK), device=so.device,
-                    inputs=[bounds, cols, vals, sc.one_hat, sc.y_hat])
-    wp.launch(kc.haar_inverse, dim=(1, size), inputs=[sc.y_hat, sc.y], device=so.device)
-    wp.launch(kc.scatter_add, dim=so.size, inputs=[sc.y, so.packed["perm"], _scalar(u, so)], device=so.device)
+    _transform(so, [(wp.array(ptr=hs.ptr, dtype=so.dtype, shape=(1, so.pitch), device=so.device, copy=False), 0, 1)],
+               sc, sc.one_hat, 0, 1)
+    _sparse_sum(so, "H0_inv", sc.one_hat, 0, 0, sc)
+    wp.launch(kc.inverse_add, dim=so.size, inputs=[sc.y_hat, so.packed["perm"], _scalar(u, so)], device=so.device)
 
 
 def resolve_backend(backend: str, device: wp.Device) -> str:

@@ -1,0 +1,133 @@
+"""The Haar coefficients of one BEM operator on a Warp device: the GPU build of the compressed
+operators (issue 20; ``wsim.bem.compression`` holds the maths and the host build).
+
+``DeviceCoefficients`` answers what ``compression.compress`` and ``compression.choose_keep`` ask
+of a coefficient set without the padded matrix ever leaving the device:
+
+* the transform C = W P A P^T W^T (``kernels/bem_compressed.py``: the matrix permuted and zero
+  padded in float64, then log2(size) Haar levels along the rows and as many along the columns,
+  each level written to a work matrix and copied back over the part it changed);
+* a *level* is a threshold: the coefficients kept are those with |C_ij| >= t, where t runs over
+  the float32 numbers (level = FLOAT32_INF_BITS - the bits of t, so more level keeps more and
+  bisecting over levels takes at most 31 passes); a count of the kept ones is one pass
+  (``count_at_least``), so is the product of the dropped ones with tuning vectors
+  (``dropped_products``), and so is the extraction into CSR (``compact_rows``, columns in order).
+
+Memory: two float64 matrices of the padded size (2 x 8 size^2 bytes: 4.3 GB at size 16384) and
+the input matrix; one instance serves every matrix of an operator set (``load`` reuses them).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+import warp as wp
+
+from wsim.bem.compression import CompressedMatrix, _pow2
+from wsim.kernels import bem_compressed as kc
+
+FLOAT32_INF_BITS = 0x7F800000  # the bits of +inf: level 0 keeps nothing
+
+
+def _threshold(level: int) -> float:
+    """The float32 number whose bits are FLOAT32_INF_BITS - level (float64 for the kernels)."""
+    return float(np.array([FLOAT32_INF_BITS - level], dtype=np.uint32).view(np.float32)[0])
+
+
+class DeviceCoefficients:
+    """C = W P A P^T W^T of one matrix at a time on a Warp device (see the module docstring)."""
+
+    def __init__(self, n: int, device: Any) -> None:
+        self.device = wp.get_device(device)
+        self.n = int(n)
+        self.size = _pow2(self.n)
+        shape = (self.size, self.size)
+        self.C = wp.zeros(shape, dtype=wp.float64, device=self.device)
+        self._work = wp.zeros(shape, dtype=wp.float64, device=self.device)
+        self._counts = wp.zeros(self.size, dtype=wp.int32, device=self.device)
+        self._kept2 = wp.zeros(self.size, dtype=wp.float64, device=self.device)
+        self.levels = (1, FLOAT32_INF_BITS)  # t = the smallest float32 > 0 ... t = 0: everything
+        self._counted: dict[int, tuple[int, float]] = {}
+        self._X: dict[int, tuple[wp.array, wp.array]] = {}
+        self.perm = np.arange(self.n)
+        self.norm = 0.0
+        self.total2 = 0.0
+
+    def load(self, A: np.ndarray, perm: np.ndarray) -> "DeviceCoefficients":
+        """Transform A (n x n, float32 or float64, original order) under the new -> old ``perm``."""
+        A = np.asarray(A)
+        if A.shape != (self.n, self.n):
+            raise ValueError(f"DeviceCoefficients: expected a {self.n} x {self.n} matrix, got {A.shape}")
+        d = self.device
+        self.perm = np.asarray(perm, dtype=np.int64)
+        self._counted.clear()
+        self._X.clear()
+        src = wp.array(np.ascontiguousarray(A), device=d)
+        wp.launch(kc.permute_pad, dim=(self.size, self.size), device=d,
+                  inputs=[src, wp.array(self.perm.astype(np.int32), dtype=wp.int32, device=d), self.C])
+        del src
+        size = self.size
+        m = size
+        while m > 1:  # along the rows (pairs of columns), then along the columns (pairs of rows)
+            wp.launch(kc.haar_level_cols, dim=(size, m // 2), inputs=[self.C, self._work, m // 2], device=d)
+            wp.launch(kc.copy_corner, dim=(size, m), inputs=[self._work, self.C], device=d)
+            m //= 2
+        m = size
+        while m > 1:
+            wp.launch(kc.haar_level_rows, dim=(m // 2, size), inputs=[self.C, self._work, m // 2], device=d)
+            wp.launch(kc.copy_corner, dim=(m, size), inputs=[self._work, self.C], device=d)
+            m //= 2
+        self.total2 = self._count(self.levels[1])[1]
+        self.norm = float(np.linalg.norm(A.astype(np.float64, copy=False)))
+        return self
+
+    def _count(self, level: int) -> tuple[int, float]:
+        """(coefficients kept at ``level``, the sum of their squares)."""
+        found = self._counted.get(level)
+        if found is None:
+            t = _threshold(level) if level < FLOAT32_INF_BITS else 0.0
+            wp.launch_tiled(kc.count_at_least, dim=self.size, block_dim=int(kc.COUNT_BLOCK), device=self.device,
+                            inputs=[self.C, wp.float64(t), self._counts, self._kept2])
+            found = self._counted[level] = (int(self._counts.numpy().astype(np.int64).sum()),
+                                            float(self._kept2.numpy().sum()))
+        return found
+
+    def level_for(self, keep: int) -> int:
+        """The lowest level keeping at least ``keep`` coefficients (ties at the threshold all kept)."""
+        lo, hi = self.levels
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if self._count(mid)[0] >= keep:
+                hi = mid
+            else:
+                lo = mid + 1
+        return hi
+
+    def dropped(self, level: int, X_hat: np.ndarray) -> np.ndarray:
+        """(C - C_kept) X_hat (size x k, float64) for the coefficients kept at ``level``."""
+        found = self._X.get(id(X_hat))
+        if found is None or found[0].shape != X_hat.shape:
+            x = wp.array(np.ascontiguousarray(X_hat, dtype=np.float64), dtype=wp.float64, device=self.device)
+            found = self._X[id(X_hat)] = (x, wp.zeros(X_hat.shape, dtype=wp.float64, device=self.device))
+        x, out = found
+        t = _threshold(level) if level < FLOAT32_INF_BITS else 0.0
+        wp.launch_tiled(kc.dropped_products, dim=X_hat.shape, block_dim=int(kc.COUNT_BLOCK), device=self.device,
+                        inputs=[self.C, wp.float64(t), x, out])
+        return out.numpy()
+
+    def extract(self, level: int) -> CompressedMatrix:
+        """The kept coefficients as a host ``CompressedMatrix`` (CSR, columns in order)."""
+        t = _threshold(level) if level < FLOAT32_INF_BITS else 0.0
+        kept, kept2 = self._count(level)
+        wp.launch_tiled(kc.count_at_least, dim=self.size, block_dim=int(kc.COUNT_BLOCK), device=self.device,
+                        inputs=[self.C, wp.float64(t), self._counts, self._kept2])
+        indptr = np.concatenate([[0], np.cumsum(self._counts.numpy().astype(np.int64))])
+        cols = wp.empty(max(kept, 1), dtype=wp.int32, device=self.device)
+        vals = wp.empty(max(kept, 1), dtype=wp.float64, device=self.device)
+        wp.launch(kc.compact_rows, dim=self.size, device=self.device,
+                  inputs=[self.C, wp.float64(t), wp.array(indptr, dtype=wp.int64, device=self.device), cols, vals])
+        C = sp.csr_matrix((vals.numpy()[:kept], cols.numpy()[:kept], indptr), shape=(self.size, self.size))
+        dropped = float(np.sqrt(max(self.total2 - kept2, 0.0)))
+        return CompressedMatrix(n=self.n, perm=self.perm, C=C, norm=self.norm, dropped=dropped)
