@@ -363,6 +363,21 @@ def test_divergence_stops_with_the_body_and_quantity_named(tmp_path, ops_cache):
     assert stage.GetEndTimeCode() == 1.0  # frames before the failure are written
 
 
+def test_an_overflowing_step_is_a_named_divergence_not_a_crash(ops_cache):
+    """A solve that returns non-finite u (an unstable setting overflowing in one step) skips the
+    error correction - whose SVD cannot take NaN - and stops the body with the quantity named."""
+    ops = ops_cache(1, 10)
+    world = wsim.World(fps=50, device="cpu", gravity=(0.0, 0.0, 0.0))
+    body = world.add(wsim.BemBody(sphere(1), MAT, ops.dt, operators=ops, name="ball"))
+    world.step()
+    u, a, alpha = body.unconstrained_solve()
+    u[3] = np.inf
+    body._finish_step(u, a, alpha, 0.0)  # the stage a real overflow reaches
+    assert body.failed
+    with pytest.raises(wsim.SimulationDiverged, match="ball.*non-finite displacement"):
+        body.check_finite(1, body.time)
+
+
 def test_device_trajectory_matches_cpu_blas(device, ops_cache):
     """The same pushed, spinning body on each device (Warp kernels on CUDA) against the CPU BLAS run."""
     ops = ops_cache(1, 10)

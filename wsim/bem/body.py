@@ -878,12 +878,13 @@ class BemBody(VertexImpulses, Body):
         so, f = self._so, st.frame
         n3 = so.size
         g_body = f.R.T @ self._gravity  # g' (Eq. 11a)
+        finite = bool(np.all(np.isfinite(u)))  # else no correction (its SVD fails): _check_state reports it
         if self.frame_update:
             da = dalpha = np.zeros(3)
             transfer = None
-            if self.error_correction and correct:
+            if self.error_correction and correct and finite:
                 da, dalpha, u = so.correction.apply(u)
-            elif self.error_correction:  # a constrained step: the drift goes to the pose (see ``step``)
+            elif self.error_correction and finite:  # a constrained step: the drift goes to the pose (see ``step``)
                 *transfer, u = so.correction.drift(u)
             b = np.concatenate([a_ext + da, alpha_ext + dalpha])  # [a - g', alpha]
         else:

@@ -7,8 +7,9 @@ For one (mesh, material, dt, options):
 2. after each sample, the CQ weights of Eq. (15) folded into real H_k, G_k (k = 0..n_max) on the
    device (``cq_accumulate``); D_k, Q_k (3N x 3) on the host;
 3. mass properties and A, C of Eq. (10) (``wsim.bem.mass``);
-4. the LU factorization of H_0, H_0^-1, G' = G_0 + D_0 A + Q_0 C and H_0^-1 G' (scipy LAPACK,
-   float64), used by the time stepping of Eq. (12).
+4. the LU factorization of H_0, H_0^-1, G' = G_0 + D_0 A + Q_0 C and H_0^-1 G' (float64;
+   ``wsim.bem.factorization``: scipy LAPACK on the host, or cuSOLVER through CuPy on a GPU),
+   used by the time stepping of Eq. (12).
 
 Precision: every Laplace-domain sum and the CQ accumulation are float64; the stored H_k, G_k,
 H_0^-1 and H_0^-1 G' are float32 (default, halves memory and bandwidth) or float64; the LU
@@ -30,6 +31,8 @@ from scipy.spatial import ConvexHull
 from wsim import mesh as wmesh
 from wsim.bem import cq
 from wsim.bem.assembly import LaplaceAssembler
+from wsim.bem.factorization import factorize
+from wsim.bem.factorization import resolve as factorization_backend
 from wsim.bem.mass import mass_properties, traction_maps
 from wsim.bem.quadrature import Quadrature, quadrature_from
 from wsim.bem.surface import BemSurface, prepare_surface
@@ -157,6 +160,7 @@ def build_operators(
     cache: bool | OperatorCache = True,
     memory_limit: int | None = None,
     progress: bool | None = None,
+    factorization: str = "auto",
     **quadrature: Any,
 ) -> BemOperators:
     """Build (or load from the cache) the operator set of one BEM body.
@@ -175,6 +179,9 @@ def build_operators(
         memory_limit: device bytes the row blocks may use (default 60 % of free GPU memory, 2 GiB on CPU).
         progress: a progress bar over (row block, sample): ``wsim.progress.show_progress`` (None:
             when stderr is a terminal; ``WSIM_PROGRESS=0`` hides it whatever is asked).
+        factorization: where the LU of H_0 and the products H_0^-1, H_0^-1 G' run: "scipy" (host),
+            "cupy" (GPU, the optional ``gpu`` extra) or "auto" (CuPy on a CUDA build when it
+            imports); ``wsim.bem.factorization``. Not part of the cache key (same factors to round-off).
         **quadrature: :class:`~wsim.bem.quadrature.Quadrature` knobs.
     """
     t_start = time.perf_counter()
@@ -190,6 +197,7 @@ def build_operators(
         raise InvalidParameter(f"CQ method = {method!r} must be one of {', '.join(cq.GAMMA)}")
     if not (0.0 < eps < 1.0):
         raise InvalidParameter(f"eps = {eps!r} must be in (0, 1)")
+    factorization_backend(factorization, False)  # a bad name fails before any work
     quad = quadrature_from(quadrature)
     vertices, faces = wmesh.surface_arrays(mesh, "bem mesh")
     surface = prepare_surface(vertices, faces, double_nodes=double_nodes, name="bem mesh")
@@ -203,7 +211,7 @@ def build_operators(
     def build() -> dict[str, np.ndarray]:
         t_build = time.perf_counter()
         out = _build(surface, material, dt, method, eps, precision, int(n_max), r_max, quad, device,
-                     memory_limit, progress, timings).to_arrays()
+                     memory_limit, progress, timings, factorization).to_arrays()
         timings["build"] = time.perf_counter() - t_build
         return out
 
@@ -229,7 +237,7 @@ def build_operators(
 
 def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: str, eps: float, precision: str,
            n_max: int, r_max: float, quad: Quadrature, device: Any, memory_limit: int | None, progress: bool | None,
-           timings: dict[str, float]) -> BemOperators:
+           timings: dict[str, float], factorization: str = "auto") -> BemOperators:
     from tqdm.auto import tqdm
 
     from wsim.progress import show_progress
@@ -297,11 +305,13 @@ def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: st
     timings["assembly"] = t_assembly
     timings["transfer"] = t_transfer
     t3 = time.perf_counter()
-    lu = scipy.linalg.lu_factor(H0, check_finite=True)
-    H0_inv = scipy.linalg.lu_solve(lu, np.eye(3 * n))
     Gp = G0 + D[0] @ A + Q[0] @ C
-    H0_inv_Gp = scipy.linalg.lu_solve(lu, Gp)
+    del G0, G0_host  # a large body's float64 G_0 is gigabytes: gone before the factors arrive
+    backend = factorization_backend(factorization, dev.is_cuda)
+    lu, H0_inv, H0_inv_Gp = factorize(H0, Gp, backend, dev.ordinal if dev.is_cuda else 0)
+    del H0, H0_host
     timings["factorization"] = time.perf_counter() - t3
+    timings["factorization_on_gpu"] = float(backend == "cupy")
     return BemOperators(
         surface=surface, material=material, dt=dt, method=method, precision=precision, n_max=n_max, r_max=r_max,
         H=H, G=G, D=D, Q=Q, H0_lu=lu, H0_inv=H0_inv.astype(dtype), H0_inv_Gp=H0_inv_Gp.astype(dtype), Gp=Gp,
