@@ -128,20 +128,20 @@ def haar_inverse(C: wp.array2d(dtype=wp.float32), out: wp.array2d(dtype=wp.float
 
 
 @wp.kernel
-def chunk_sums(item_row: wp.array(dtype=wp.int32), item_mat: wp.array(dtype=wp.int32),
-               item_start: wp.array(dtype=wp.int64), item_end: wp.array(dtype=wp.int64),
+def chunk_sums(item_mat: wp.array(dtype=wp.uint8), item_start: wp.array(dtype=wp.int64),
+               item_len: wp.array(dtype=wp.uint16),
                cols: wp.array(dtype=wp.uint16), vals: wp.array(dtype=wp.float32),
                X: wp.array2d(dtype=wp.float32), n_max: int, step: int, partial: wp.array(dtype=wp.float32)):
     """partial[item] = sign_j sum_e vals[e] x_j[cols[e]] over the item's coefficients
-    [item_start, item_end), all of one matrix j = item_mat (part of one row). History (n_max > 0):
+    [item_start, item_start + item_len), all of one matrix j = item_mat (part of one row). History (n_max > 0):
     matrices H_1..H_n_max then G_1..G_n_max against the wavelet-domain rings X (rows 0..n_max-1 u,
     n_max.. p; step s in slot s mod n_max), sign - for H_k and + for G_k, x_j the ring slot of
     step - k. One matrix (n_max = 0): x = X[0], sign +. Four coefficients a lane per iteration
     (independent loads in flight)."""
     item, lane = wp.tid()
-    j = item_mat[item]
+    j = int(item_mat[item])
     e = item_start[item] + wp.int64(lane)
-    end = item_end[item]
+    end = item_start[item] + wp.int64(item_len[item])
     stride = wp.int64(wp.block_dim())
     x_row = int(0)
     sign = float(1.0)

@@ -144,6 +144,7 @@ def run_case(name: str, device: str | None, precision: str, mesh_path: str | Non
             "history_matvec_seconds": hist,
             "history_matvec_GBps": hist_bytes / hist / 1e9,
             "history_bytes": int(hist_bytes),
+            "history_matrix_bytes": int(so.history_matrix_bytes),
             "history_with_ring_update_graph_seconds": graph,
             "step_matrix_bytes": int(so.matrix_bytes),
             "max_displacement": float(np.max(np.abs(body.displacement()))),
@@ -158,6 +159,7 @@ def run_case(name: str, device: str | None, precision: str, mesh_path: str | Non
                 "history_speedup_vs_dense_graph": (dense["history_with_ring_update_graph_seconds"] / graph
                                                    if graph else None),
                 "history_memory_ratio_vs_dense": dense["history_bytes"] / hist_bytes,
+                "matrix_memory_ratio_vs_dense": dense["history_matrix_bytes"] / so.history_matrix_bytes,
                 "uncnst_speedup_vs_dense": dense["uncnst_seconds"] / uncnst,
                 "relative_frobenius_error_H1": so.compressed.H[0].relative_error,
             })

@@ -86,11 +86,17 @@ class StepOperators:
         return int(sum(m.nbytes for m in mats))
 
     @property
-    def history_bytes(self) -> int:
-        """Bytes the history pass reads: 2 n_max dense (or compressed) matrices and the small blocks."""
+    def history_matrix_bytes(self) -> int:
+        """Bytes of the 2 n_max history matrices H_k, G_k as stored (dense, or compressed with their
+        index arrays)."""
         if self.compressed is not None:
-            return self._stored_bytes("history") + int(self.DQ.capacity)
-        return int(self.H.capacity + self.G.capacity + self.DQ.capacity)
+            return self._stored_bytes("history")
+        return int(self.H.capacity + self.G.capacity)
+
+    @property
+    def history_bytes(self) -> int:
+        """Bytes the history pass reads: the history matrices and the (dense, 3N x 6) [D_k Q_k] blocks."""
+        return self.history_matrix_bytes + int(self.DQ.capacity)
 
     @property
     def matrix_bytes(self) -> int:
@@ -247,10 +253,10 @@ def _compressed_step_operators(ops: BemOperators, device: wp.Device, backend: st
         vec4 = {"H0_inv_Gp": vec4_view(H0_inv_Gp)}
 
         def arrays(mats) -> tuple[wp.array, ...]:
-            """(cols, vals, item_row, item_mat, item_start, item_end, row_items) on the device."""
+            """(cols, vals, item_mat, item_start, item_len, row_items) on the device."""
             b, c, v = pack_rows(mats)
             parts = (c, v, *work_items(b, kc.CHUNK))
-            types = (wp.uint16, wp.float32, wp.int32, wp.int32, wp.int64, wp.int64, wp.int64)
+            types = (wp.uint16, wp.float32, wp.uint8, wp.int64, wp.uint16, wp.int64)
             return tuple(wp.array(a, dtype=t, device=device) for a, t in zip(parts, types))
 
         packed = {"perm": wp.array(ch.perm.astype(np.int32), dtype=wp.int32, device=device), "size": ch.size,
@@ -337,9 +343,9 @@ def ring_written(so: StepOperators, U: wp.array, P: wp.array, slot: int, scratch
 
 def _sparse_sum(so: StepOperators, part: str, X: wp.array, n_max: int, step: int, sc: CompressedScratch) -> None:
     """sc.y_hat = the packed ``part``'s product with X (``chunk_sums`` then ``row_sums``)."""
-    cols, vals, item_row, item_mat, item_start, item_end, row_items = so.packed[part]
-    wp.launch_tiled(kc.chunk_sums, dim=len(item_row), block_dim=int(kc.SPMV_BLOCK), device=so.device,
-                    inputs=[item_row, item_mat, item_start, item_end, cols, vals, X, n_max, step, sc.partial])
+    cols, vals, item_mat, item_start, item_len, row_items = so.packed[part]
+    wp.launch_tiled(kc.chunk_sums, dim=len(item_mat), block_dim=int(kc.SPMV_BLOCK), device=so.device,
+                    inputs=[item_mat, item_start, item_len, cols, vals, X, n_max, step, sc.partial])
     wp.launch_tiled(kc.row_sums, dim=so.packed["size"], block_dim=int(kc.SPMV_BLOCK), device=so.device,
                     inputs=[row_items, sc.partial, sc.y_hat])
 
