@@ -24,7 +24,13 @@ for a breathing 0.5 m ball at 4000 substeps/s; the float64 numpy reference: 4e-1
 
 Parallel projection is race-free because constraints are coloured (no two constraints of one
 colour share a particle; see ``wsim.colouring``) and each launch covers one colour,
-starting at ``offset`` in the colour-sorted arrays. Positions and multipliers are float32
+starting at ``offset`` in the colour-sorted arrays (Gauss-Seidel between colours). In the Jacobi
+mode (``omega`` > 0) one launch covers a whole family: every constraint reads the positions as
+they were before the launch, scales its multiplier increment by omega / (the largest count of
+the family's constraints on any of its particles) - the same factor for every particle of the
+constraint, so each projection still changes neither momentum - and adds its corrections to
+``acc`` atomically; ``apply_jacobi`` then moves them into dx. Fewer launches (one a family
+instead of one a colour) for slower convergence per iteration. Positions and multipliers are float32
 (bandwidth); the global volume sums and the rigid-motion moments are accumulated in float64
 because they add up O(N) terms of alternating sign.
 """
@@ -72,15 +78,27 @@ def project4(
     compliance: float,
     beta: float,
     h: float,
+    acc: wp.array(dtype=wp.vec3),
+    count: wp.array(dtype=float),
+    omega: float,
 ):
     """One XPBD projection of a 4-particle constraint with value C, change dC over the substep and
-    gradients g0..g3 (module docstring); the correction is added to ``dx``."""
+    gradients g0..g3 (module docstring); the correction is added to ``dx``, or in the Jacobi mode
+    (omega > 0, module docstring) scaled and added to ``acc``."""
     w0 = inv_mass[ids[0]]
     w1 = inv_mass[ids[1]]
     w2 = inv_mass[ids[2]]
     w3 = inv_mass[ids[3]]
     w_grad2 = w0 * wp.dot(g0, g0) + w1 * wp.dot(g1, g1) + w2 * wp.dot(g2, g2) + w3 * wp.dot(g3, g3)
     dl = xpbd_delta_lambda(C, lam[c], w_grad2, dC, compliance, beta, h)
+    if omega > 0.0:
+        dl = dl * omega / wp.max(wp.max(count[ids[0]], count[ids[1]]), wp.max(count[ids[2]], count[ids[3]]))
+        lam[c] = lam[c] + dl
+        wp.atomic_add(acc, ids[0], g0 * (w0 * dl))
+        wp.atomic_add(acc, ids[1], g1 * (w1 * dl))
+        wp.atomic_add(acc, ids[2], g2 * (w2 * dl))
+        wp.atomic_add(acc, ids[3], g3 * (w3 * dl))
+        return
     lam[c] = lam[c] + dl
     dx[ids[0]] = dx[ids[0]] + g0 * (w0 * dl)
     dx[ids[1]] = dx[ids[1]] + g1 * (w1 * dl)
@@ -292,6 +310,9 @@ def solve_distance(
     offset: int,
     beta: float,
     h: float,
+    acc: wp.array(dtype=wp.vec3),
+    count: wp.array(dtype=float),
+    omega: float,
 ):
     """Edge stretch, [PBD] Eq. 10: C = |x_i - x_j| - L0, grad_i C = n, grad_j C = -n.
 
@@ -313,6 +334,12 @@ def solve_distance(
     C = length - rest[c]
     dC = length - wp.length(x_prev[i] - x_prev[j])
     dl = xpbd_delta_lambda(C, lam[c], wi + wj, dC, compliance[c], beta, h)
+    if omega > 0.0:  # Jacobi (module docstring): both ends get the same scaled multiplier
+        dl = dl * omega / wp.max(count[i], count[j])
+        lam[c] = lam[c] + dl
+        wp.atomic_add(acc, i, n * (wi * dl))
+        wp.atomic_add(acc, j, -n * (wj * dl))
+        return
     lam[c] = lam[c] + dl
     dx[i] = dx[i] + n * (wi * dl)
     dx[j] = dx[j] - n * (wj * dl)
@@ -350,6 +377,9 @@ def solve_bending(
     offset: int,
     beta: float,
     h: float,
+    acc: wp.array(dtype=wp.vec3),
+    count: wp.array(dtype=float),
+    omega: float,
 ):
     """Dihedral bending, [PBD] §4.2 with the angle gradient of Bridson et al. (SCA 2003):
 
@@ -388,7 +418,7 @@ def solve_bending(
     # keep C in (-pi, pi] so a hinge that passes through +-pi is pulled the short way round
     C = wrap_angle(theta - rest[c])
     dC = wrap_angle(theta - dihedral(x_prev[ids[0]], x_prev[ids[1]], x_prev[ids[2]], x_prev[ids[3]]))
-    project4(x_pred, dx, inv_mass, lam, c, ids, g1, g2, g3, g4, C, dC, compliance[c], beta, h)
+    project4(x_pred, dx, inv_mass, lam, c, ids, g1, g2, g3, g4, C, dC, compliance[c], beta, h, acc, count, omega)
 
 
 @wp.func
@@ -409,6 +439,9 @@ def solve_tet_volume(
     offset: int,
     beta: float,
     h: float,
+    acc: wp.array(dtype=wp.vec3),
+    count: wp.array(dtype=float),
+    omega: float,
 ):
     """Per-tetrahedron volume, [PBD] Eq. 12: C = (1/6) (x1-x0).((x2-x0) x (x3-x0)) - V0.
 
@@ -429,7 +462,8 @@ def solve_tet_volume(
     V = wp.dot(d1, g1)
     C = V - rest[c]
     dC = V - tet_volume6(x_prev[ids[0]], x_prev[ids[1]], x_prev[ids[2]], x_prev[ids[3]]) / 6.0
-    project4(x_pred, dx, inv_mass, lam, c, ids, -(g1 + g2 + g3), g1, g2, g3, C, dC, compliance[c], beta, h)
+    project4(x_pred, dx, inv_mass, lam, c, ids, -(g1 + g2 + g3), g1, g2, g3, C, dC, compliance[c], beta, h, acc,
+             count, omega)
 
 
 #: threads per block of the volume reduction (one float64 atomic per block and sum)
@@ -514,6 +548,14 @@ def volume_apply(
     if i == 0:
         lam[slot + 1] = lam[slot] + d
     dx[i] = dx[i] + grad[i] * (inv_mass[i] * float(d))
+
+
+@wp.kernel
+def apply_jacobi(dx: wp.array(dtype=wp.vec3), acc: wp.array(dtype=wp.vec3)):
+    """The Jacobi sweep's corrections applied at once: dx += acc, acc = 0 for the next sweep."""
+    i = wp.tid()
+    dx[i] = dx[i] + acc[i]
+    acc[i] = wp.vec3(0.0, 0.0, 0.0)
 
 
 @wp.kernel

@@ -16,7 +16,8 @@ radius makes the grid's own particles collide and blow it apart). wsim runs as a
 (``World.step``; ``use_graph`` on).
 
 For each solver and each ``substeps x iterations`` of ``--sweep`` (and the ``--reference``, the
-converged run), a JSON line: milliseconds per frame (after the first frame: compilation, capture),
+converged run), a JSON line (``--wsim-solver gauss_seidel,jacobi`` runs both of wsim's modes,
+"wsim" and "wsim-jacobi"): milliseconds per frame (after the first frame: compilation, capture),
 the error - the largest particle distance at the last frame from the same solver's reference
 run, over the grid's bounding-box diagonal - and a physical check (finite, the extent at most 3x
 the initial one, nothing below the ground by more than a cell): a run that fails it has no
@@ -45,6 +46,10 @@ def parse_settings(text: str) -> list[tuple[int, int]]:
         s, _, i = item.strip().partition("x")
         out.append((int(s), int(i)))
     return out
+
+
+def wsim_solvers(text: str) -> list[str]:
+    return [s for s in text.split(",") if s]
 
 
 def grid_model(newton, wp, dims: tuple[int, int, int], cell: float, k_mu: float, k_lambda: float, density: float,
@@ -161,7 +166,7 @@ def run_newton(newton, wp, args, substeps: int, iterations: int) -> tuple[np.nda
     return A.particle_q.numpy().astype(np.float64), (time.perf_counter() - t0) / max(args.frames - 1, 1)
 
 
-def run_wsim(args, grid, substeps: int, iterations: int) -> tuple[np.ndarray, float]:
+def run_wsim(args, grid, substeps: int, iterations: int, solver: str = "gauss_seidel") -> tuple[np.ndarray, float]:
     import warp as wp
 
     import wsim
@@ -172,7 +177,7 @@ def run_wsim(args, grid, substeps: int, iterations: int) -> tuple[np.ndarray, fl
     world.add_collider(wsim.GroundPlane(0.0, friction=args.friction))
     body = world.add(wsim.PbdBody((p[:n_surface], faces), material, name="grid", tets=tets,
                                   interior_points=p[n_surface:], substeps=substeps, iterations=iterations,
-                                  cache=False))
+                                  solver=solver, cache=False))
     world.step()  # the first frame: compilation, graph capture
     wp.synchronize_device(world.device)
     t0 = time.perf_counter()
@@ -204,6 +209,8 @@ def main() -> None:
     ap.add_argument("--reference", default="80x40")
     ap.add_argument("--levels", default="0.005,0.01,0.025,0.05")
     ap.add_argument("--solvers", default="wsim,newton")
+    ap.add_argument("--wsim-solver", default="gauss_seidel",
+                    help="PbdBody solver(s) for the wsim half: gauss_seidel, jacobi or both (comma separated)")
     args = ap.parse_args()
     args.dims = tuple(int(d) for d in args.dims.split(","))
 
@@ -235,7 +242,10 @@ def main() -> None:
          E=material.E, nu=nu, fps=args.fps, frames=args.frames, device=args.device,
          gpu=wp.get_device(args.device).name if wp.get_device(args.device).is_cuda else None)
 
-    solvers = [s for s in args.solvers.split(",") if s]
+    solvers = []
+    for s in (s for s in args.solvers.split(",") if s):
+        solvers += [f"wsim-{w}" if w != "gauss_seidel" else "wsim" for w in wsim_solvers(args.wsim_solver)] \
+            if s == "wsim" else [s]
     rows: dict[str, list[dict]] = {}
     for name in solvers:
         if name == "newton" and newton is None:
@@ -246,8 +256,10 @@ def main() -> None:
                 return run_newton(newton, wp, args, s, i)
             version = newton.__version__
         else:
-            def run(s: int, i: int) -> tuple[np.ndarray, float]:
-                return run_wsim(args, grid, s, i)
+            mode = name.partition("-")[2] or "gauss_seidel"
+
+            def run(s: int, i: int, mode: str = mode) -> tuple[np.ndarray, float]:
+                return run_wsim(args, grid, s, i, mode)
             version = wsim.__version__ if hasattr(wsim, "__version__") else None
         ref_s, ref_i = parse_settings(args.reference)[0]
         q_ref, ms_ref = run(ref_s, ref_i)

@@ -39,6 +39,7 @@ from wsim.materials import ElasticMaterial, body_material
 from wsim.pbd.model import MODEL_FORMAT_VERSION, ConstraintFamily, PbdModel, build_model
 
 _KERNELS = {"distance": kp.solve_distance, "bending": kp.solve_bending, "tet_volume": kp.solve_tet_volume}
+SOLVERS = ("gauss_seidel", "jacobi")
 _VEC = {2: wp.vec2i, 4: wp.vec4i}
 
 
@@ -60,6 +61,7 @@ class _DeviceFamily:
     rest: wp.array
     compliance: wp.array
     lam: wp.array
+    count: wp.array  # (P,) float32: how many of the family's constraints touch each particle (Jacobi)
 
 
 @dataclass
@@ -113,6 +115,14 @@ class PbdBody(Body):
         substeps: substeps per frame; or give ``dt`` [s], and the substep is the largest h <= dt
             that divides the frame.
         iterations: constraint iterations per substep.
+        solver: how an iteration projects a constraint family: "gauss_seidel" (default: one launch
+            per colour of the family, each constraint seeing the corrections of the colours before
+            it) or "jacobi" (one launch per family, every constraint seeing the positions before
+            the sweep, its multiplier increment scaled by ``omega`` over the largest number of the
+            family's constraints on any of its particles; momentum-conserving like Gauss-Seidel).
+            Jacobi takes a few launches where Gauss-Seidel takes tens, and needs more iterations
+            for the same accuracy (``tools/bench_pbd_peer.py`` measures the trade).
+        omega: the Jacobi relaxation (> 0, <= 2; 1 is the safe averaging).
         stretch, bending, volume, tet_volume: constraint families (defaults: bending and global
             volume for surface-only bodies; tet edges and tet volumes for tet bodies).
         thickness: membrane/plate thickness of a surface-only body [m] (see ``wsim.pbd.model``).
@@ -167,6 +177,8 @@ class PbdBody(Body):
         substeps: int | None = None,
         dt: float | None = None,
         iterations: int = 2,
+        solver: str = "gauss_seidel",
+        omega: float = 1.0,
         stretch: bool = True,
         bending: bool | None = None,
         volume: bool | None = None,
@@ -219,6 +231,12 @@ class PbdBody(Body):
         if dt is None and substeps is None:
             self.substeps = 10
         self.iterations = positive_int(iterations, f"body '{name}': iterations")
+        if solver not in SOLVERS:
+            raise InvalidParameter(f"body '{name}': solver = {solver!r} must be one of {', '.join(SOLVERS)}")
+        self.solver = solver
+        self.omega = finite_number(omega, f"body '{name}': omega")
+        if not 0.0 < self.omega <= 2.0:
+            raise InvalidParameter(f"body '{name}': omega = {omega} must lie in (0, 2]")
         self.damping = finite_number(damping, f"body '{name}': damping [s]")
         self.drag = finite_number(drag, f"body '{name}': drag [1/s]")
         for what, val in (("damping", self.damping), ("drag", self.drag)):
@@ -470,6 +488,8 @@ class PbdBody(Body):
             self.x_pred = wp.zeros(n, dtype=wp.vec3)
             self.dx = wp.zeros(n, dtype=wp.vec3)  # corrections of the current substep (x = x_pred + dx)
             self.dxc = wp.zeros(n, dtype=wp.vec3)  # contact part of dx (its angular impulse is kept)
+            # the Jacobi sweep's corrections (the Gauss-Seidel kernels get dx in its place, unused)
+            self._acc = wp.zeros(n, dtype=wp.vec3) if self.solver == "jacobi" else self.dx
             self._moments = wp.zeros(2 * kp.MOMENT_SUMS, dtype=wp.float64)
             self.inv_mass = wp.array(inv_mass.astype(np.float32), dtype=float)
             self.flags = wp.zeros(2, dtype=int)
@@ -517,6 +537,8 @@ class PbdBody(Body):
         self._layout = None  # rebuild the per-frame buffers and the CUDA graph
 
     def _upload_family(self, f: ConstraintFamily, lam: wp.array) -> _DeviceFamily:
+        count = np.bincount(np.asarray(f.indices).ravel(), minlength=self.model.n_particles) if self.solver == "jacobi" \
+            else np.zeros(1)
         return _DeviceFamily(
             kind=f.kind,
             offsets=f.offsets,
@@ -524,6 +546,7 @@ class PbdBody(Body):
             rest=wp.array(f.rest.astype(np.float32), dtype=float),
             compliance=wp.array(f.compliance.astype(np.float32), dtype=float),
             lam=lam,
+            count=wp.array(count.astype(np.float32), dtype=float),
         )
 
     def _prepare_layout(self, substeps: int, h: float) -> None:
@@ -609,13 +632,19 @@ class PbdBody(Body):
     def _launch_family(self, fam: _DeviceFamily, h: float) -> None:
         kernel = _KERNELS[fam.kind]
         args = [self.x_pred, self.dx, self.x_prev, self.inv_mass, fam.indices, fam.rest, fam.compliance, fam.lam]
+        if self.solver == "jacobi":  # the whole family in one launch, then its corrections at once
+            wp.launch(kernel, dim=int(fam.offsets[-1]),
+                      inputs=[*args, 0, self.damping, h, self._acc, fam.count, self.omega])
+            wp.launch(kp.apply_jacobi, dim=self.model.n_particles, inputs=[self.dx, self._acc])
+            return
+        tail = [self.damping, h, self._acc, fam.count, 0.0]
         if self._device.is_cpu and self._cpu_serial_sweep:
             # serial sweep over the colour-sorted array: same updates, same order, one launch
-            wp.launch(kernel, dim=int(fam.offsets[-1]), inputs=[*args, 0, self.damping, h])
+            wp.launch(kernel, dim=int(fam.offsets[-1]), inputs=[*args, 0, *tail])
             return
         for c in range(len(fam.offsets) - 1):
             start, stop = int(fam.offsets[c]), int(fam.offsets[c + 1])
-            wp.launch(kernel, dim=stop - start, inputs=[*args, start, self.damping, h], block_dim=self._block_dim)
+            wp.launch(kernel, dim=stop - start, inputs=[*args, start, *tail], block_dim=self._block_dim)
 
     def _launch_moments(self, base: int, n_blocks: int) -> None:
         args = [self.x, self.v, self.dxc, self.inv_mass, self._moments, base]
