@@ -11,7 +11,7 @@ from pxr import Usd, UsdGeom
 import wsim
 from wsim import mesh as wmesh
 from wsim.kernels import pbd_reconstruct as kr
-from wsim.pbd import baselines, pde
+from wsim.pbd import baselines, pde, reconstruction  # noqa: F401 (wsim.pbd.reconstruction below, run alone too)
 from wsim.pbd import fit as pf
 from wsim.pbd.curves import Curve, auto_curves, paper_parameters
 
