@@ -15,10 +15,12 @@ Two backends compute the passes (``history`` and ``solve``):
 ``"auto"`` picks Warp on CUDA and BLAS on the CPU, where Warp's kernels run on one thread and
 numpy's BLAS uses every core (``tools/bench_bem_step.py`` measures both: 7x on 2 cores).
 
-With a ``CompressedHistory`` (``wsim.bem.compression``) the history and H_0^-1 h products run on
-the kept Haar coefficients instead (BLAS backend: scipy on the host; Warp backend:
-``wsim.kernels.bem_compressed``, the rings transformed each step), and H_k, G_k, H_0^-1 are not
-uploaded; H_0^-1 G' stays dense (the constraint solver reads its entries).
+With a ``CompressedHistory`` (``wsim.bem.compression``; built on the GPU or the host and kept in
+the operator cache, ``compressed_history``) the history and H_0^-1 h products run on the kept
+Haar coefficients instead (BLAS backend: scipy on the host; Warp backend:
+``wsim.kernels.bem_compressed``, with the rings kept in the wavelet domain in the body's
+``CompressedScratch``: a step transforms its two new vectors, ``ring_written``), and H_k, G_k,
+H_0^-1 are not uploaded; H_0^-1 G' stays dense (the constraint solver reads its entries).
 """
 
 from __future__ import annotations
