@@ -10,7 +10,7 @@ are summed against them row by row, and one inverse transform brings h back.
   (log2(size) / 4 launches, 4 for a size of 16384): a thread loads 16 block sums of the previous
   pass (the reordered, zero-padded entries in the first, gathered in the kernel) into registers
   at once and combines them into their 15 detail coefficients and their sum, float64 throughout.
-* ``haar_inverse`` (and fused with the scatter back to the original order: ``inverse_history``,
+* the inverse transform, fused with the scatter back to the original order (``inverse_history``,
   ``inverse_add``): x_i = c_0 / sqrt(n) + sum over the log2(n) blocks holding i of
   +-c_block / sqrt(m) (+ in the block's first half).
 * ``chunk_sums`` + ``row_sums``: the sparse products, balanced. The kept coefficients of the
@@ -118,13 +118,6 @@ def _inverse_at(C: wp.array2d(dtype=wp.float32), r: int, i: int) -> wp.float64:
             v -= d
         m = m // 2
     return v
-
-
-@wp.kernel
-def haar_inverse(C: wp.array2d(dtype=wp.float32), out: wp.array2d(dtype=wp.float32)):
-    """out[r] = W^T C[r]: the inverse of ``haar_coefficients`` (``compression.inverse_haar``)."""
-    r, i = wp.tid()
-    out[r, i] = wp.float32(_inverse_at(C, r, i))
 
 
 @wp.kernel

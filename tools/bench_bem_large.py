@@ -51,7 +51,9 @@ def main() -> None:
     ops = build_operators(cube, jelly, dt, device=dev, cache=False, progress=False)
     n3 = 3 * ops.n_nodes
     dense_step_bytes = (2 * ops.n_max + 2) * n3 * n3 * 4  # H_k, G_k, H_0^-1, H_0^-1 G' in float32
-    emit(stage="build", device=dev.alias, gpu=dev.name if dev.is_cuda else None, N=ops.n_nodes, n_max=ops.n_max,
+    from wsim.bem import factorization
+
+    emit(stage="build", factorization=factorization.resolve("auto", dev.is_cuda), device=dev.alias, gpu=dev.name if dev.is_cuda else None, N=ops.n_nodes, n_max=ops.n_max,
          seconds=round(time.perf_counter() - t0, 2), timings={k: round(v, 2) for k, v in ops.timings.items()},
          dense_step_bytes=dense_step_bytes, host_peak_bytes=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
 

@@ -421,7 +421,7 @@ class BemBody(VertexImpulses, Body):
             raise InvalidParameter(f"body '{self.name}': compressed operators on the Warp backend need "
                                    f"precision='float32' (got {ops.precision!r})")
         self._so = so = stepper.step_operators(ops, device, backend, self._compression,
-                                               self._build_args.get("cache", True))
+                                               self._build_args["cache"])
         self._scratch = stepper.CompressedScratch(so) if so.packed is not None else None
         self._gravity = np.asarray(gravity, dtype=np.float64)
         self._inertia = ops.inertia

@@ -456,10 +456,9 @@ def compress_history(ops, ratio: float | None = None, error: float | None = None
         return _keep_count(coef, ratio, int(round(n * n / ratio)))
 
     n_max = ops.n_max
-    out = CompressedHistory(perm=perm, H=tuple(one(ops.H[k]) for k in range(1, n_max + 1)),
-                            G=tuple(one(ops.G[k]) for k in range(1, n_max + 1)), H0_inv=one(ops.H0_inv),
-                            spec=f"error={error:g}" if error is not None else f"ratio={ratio:g}")
-    return out
+    return CompressedHistory(perm=perm, H=tuple(one(ops.H[k]) for k in range(1, n_max + 1)),
+                             G=tuple(one(ops.G[k]) for k in range(1, n_max + 1)), H0_inv=one(ops.H0_inv),
+                             spec=f"error={error:g}" if error is not None else f"ratio={ratio:g}")
 
 
 def pack_rows(matrices: Sequence[CompressedMatrix]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

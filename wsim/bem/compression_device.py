@@ -32,7 +32,10 @@ FLOAT32_INF_BITS = 0x7F800000  # the bits of +inf: level 0 keeps nothing
 
 
 def _threshold(level: int) -> float:
-    """The float32 number whose bits are FLOAT32_INF_BITS - level (float64 for the kernels)."""
+    """The float32 number whose bits are FLOAT32_INF_BITS - level (float64 for the kernels); the
+    top level keeps everything (t = 0, zeros included)."""
+    if level >= FLOAT32_INF_BITS:
+        return 0.0
     return float(np.array([FLOAT32_INF_BITS - level], dtype=np.uint32).view(np.float32)[0])
 
 
@@ -80,19 +83,21 @@ class DeviceCoefficients:
             wp.launch(kc.copy_corner, dim=(m, size), inputs=[self._work, self.C], device=d)
             m //= 2
         self.total2 = self._count(self.levels[1])[1]
-        self.norm = float(np.linalg.norm(A.astype(np.float64, copy=False)))
+        self.norm = float(np.sqrt(self.total2))  # ||C||_F = ||A||_F: W is orthonormal, the padding zero
         return self
 
-    def _count(self, level: int) -> tuple[int, float]:
-        """(coefficients kept at ``level``, the sum of their squares)."""
-        found = self._counted.get(level)
-        if found is None:
-            t = _threshold(level) if level < FLOAT32_INF_BITS else 0.0
-            wp.launch_tiled(kc.count_at_least, dim=self.size, block_dim=int(kc.COUNT_BLOCK), device=self.device,
-                            inputs=[self.C, wp.float64(t), self._counts, self._kept2])
-            found = self._counted[level] = (int(self._counts.numpy().astype(np.int64).sum()),
-                                            float(self._kept2.numpy().sum()))
+    def _count_rows(self, level: int) -> tuple[int, float]:
+        """Count the coefficients kept at ``level`` row by row (into ``_counts``, ``_kept2``);
+        returns (their number, the sum of their squares)."""
+        wp.launch_tiled(kc.count_at_least, dim=self.size, block_dim=int(kc.COUNT_BLOCK), device=self.device,
+                        inputs=[self.C, wp.float64(_threshold(level)), self._counts, self._kept2])
+        found = self._counted[level] = (int(self._counts.numpy().astype(np.int64).sum()), float(self._kept2.numpy().sum()))
         return found
+
+    def _count(self, level: int) -> tuple[int, float]:
+        """(coefficients kept at ``level``, the sum of their squares), counted once per level."""
+        found = self._counted.get(level)
+        return found if found is not None else self._count_rows(level)
 
     def level_for(self, keep: int) -> int:
         """The lowest level keeping at least ``keep`` coefficients (ties at the threshold all kept)."""
@@ -112,17 +117,15 @@ class DeviceCoefficients:
             x = wp.array(np.ascontiguousarray(X_hat, dtype=np.float64), dtype=wp.float64, device=self.device)
             found = self._X[id(X_hat)] = (x, wp.zeros(X_hat.shape, dtype=wp.float64, device=self.device))
         x, out = found
-        t = _threshold(level) if level < FLOAT32_INF_BITS else 0.0
+        t = _threshold(level)
         wp.launch_tiled(kc.dropped_products, dim=X_hat.shape, block_dim=int(kc.COUNT_BLOCK), device=self.device,
                         inputs=[self.C, wp.float64(t), x, out])
         return out.numpy()
 
     def extract(self, level: int) -> CompressedMatrix:
         """The kept coefficients as a host ``CompressedMatrix`` (CSR, columns in order)."""
-        t = _threshold(level) if level < FLOAT32_INF_BITS else 0.0
-        kept, kept2 = self._count(level)
-        wp.launch_tiled(kc.count_at_least, dim=self.size, block_dim=int(kc.COUNT_BLOCK), device=self.device,
-                        inputs=[self.C, wp.float64(t), self._counts, self._kept2])
+        t = _threshold(level)
+        kept, kept2 = self._count_rows(level)  # the per-row counts too: the CSR's row starts
         indptr = np.concatenate([[0], np.cumsum(self._counts.numpy().astype(np.int64))])
         cols = wp.empty(max(kept, 1), dtype=wp.int32, device=self.device)
         vals = wp.empty(max(kept, 1), dtype=wp.float64, device=self.device)

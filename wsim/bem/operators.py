@@ -311,7 +311,6 @@ def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: st
     lu, H0_inv, H0_inv_Gp = factorize(H0, Gp, backend, dev.ordinal if dev.is_cuda else 0)
     del H0, H0_host
     timings["factorization"] = time.perf_counter() - t3
-    timings["factorization_on_gpu"] = float(backend == "cupy")
     return BemOperators(
         surface=surface, material=material, dt=dt, method=method, precision=precision, n_max=n_max, r_max=r_max,
         H=H, G=G, D=D, Q=Q, H0_lu=lu, H0_inv=H0_inv.astype(dtype), H0_inv_Gp=H0_inv_Gp.astype(dtype), Gp=Gp,
