@@ -270,19 +270,22 @@ def cq_accumulate(
     M_im: wp.array2d(dtype=wp.float64),
     w_re: wp.array(dtype=wp.float64),
     w_im: wp.array(dtype=wp.float64),
-    out: wp.array3d(dtype=wp.float64),
+    out: wp.array2d(dtype=wp.float64),
 ):
-    """Eq. (15) one sample at a time: out[k] += Re(w_k M) for k = 0..n_max, where w_k carries
-    R^-k zeta^(-k l) / L and the factor 2 of the conjugate sample L - l."""
+    """Eq. (15) one sample at a time: out_k += Re(w_k M) for k = 0..n_max, where w_k carries
+    R^-k zeta^(-k l) / L and the factor 2 of the conjugate sample L - l. out_k is rows
+    k R .. (k + 1) R - 1 of ``out`` (R = M's rows): 2-D because a Warp array's strides are 32-bit
+    byte counts, and a (n_max + 1, R, 3N) stack's first stride passes 2 GiB for a 10k-node body."""
     r, c = wp.tid()
     mr = M_re[r, c]
     mi = M_im[r, c]
+    rows = M_re.shape[0]
     for k in range(w_re.shape[0]):
-        out[k, r, c] += w_re[k] * mr - w_im[k] * mi
+        out[k * rows + r, c] += w_re[k] * mr - w_im[k] * mi
 
 
 @wp.kernel
-def to_float32(src: wp.array3d(dtype=wp.float64), dst: wp.array3d(dtype=wp.float32)):
+def to_float32(src: wp.array2d(dtype=wp.float64), dst: wp.array2d(dtype=wp.float32)):
     """Storage cast on the device, so only half the bytes cross to the host."""
-    k, r, c = wp.tid()
-    dst[k, r, c] = wp.float32(src[k, r, c])
+    r, c = wp.tid()
+    dst[r, c] = wp.float32(src[r, c])

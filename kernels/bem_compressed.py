@@ -13,15 +13,16 @@ are summed against them row by row, and one inverse transform brings h back.
 * the inverse transform, fused with the scatter back to the original order (``inverse_history``,
   ``inverse_add``): x_i = c_0 / sqrt(n) + sum over the log2(n) blocks holding i of
   +-c_block / sqrt(m) (+ in the block's first half).
-* ``chunk_sums`` + ``row_sums``: the sparse products, balanced. The kept coefficients of the
-  2 n_max history matrices (values float32, columns uint16: 6 bytes a coefficient, n <= 65536) are
-  laid out per row as [H_1 | ... | H_n_max | G_1 | ... | G_n_max] (``bounds[row, j]`` the start
-  of matrix j; ``compression.pack_rows``), and each row's part of each matrix is cut into work
-  items of at most CHUNK coefficients (``compression.work_items``): the coarse rows of a Haar basis
-  keep thousands of coefficients, the fine ones
-  tens, so one block per row would leave the GPU waiting on the few long rows. One block per item
-  (one warp) writes its partial sum, one warp per row adds its items in a fixed order (no atomics:
-  the same result every run).
+* ``chunk_sums`` (CPU; on CUDA ``bem_compressed_warps.chunk_sums_warps``) + ``row_sums``: the sparse products,
+  balanced. The kept coefficients of the 2 n_max history matrices (values float32, columns uint16:
+  6 bytes a coefficient, n <= 65536) are laid out per row as [H_1 | ... | H_n_max | G_1 | ... |
+  G_n_max] (``bounds[row, j]`` the start of matrix j; ``compression.pack_rows``), and each row's
+  part of each matrix is cut into work items of at most CHUNK coefficients
+  (``compression.work_items``): the coarse rows of a Haar basis keep thousands of coefficients,
+  the fine ones tens, so one block per row would leave the GPU waiting on the few long rows. The
+  items run matrix by matrix (the vector gathered from stays in L1); one warp an item writes its
+  partial sum, one warp a row adds its items in a fixed order (no atomics: the same result every
+  run).
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from typing import Any
 
 import warp as wp
 
-SPMV_BLOCK = wp.constant(32)  # one warp an item
+SPMV_BLOCK = wp.constant(32)  # one warp an item (``chunk_sums``, ``row_sums``)
 CHUNK = 512  # coefficients per work item of ``chunk_sums`` (16 per lane): rows of any length, balanced
 PASS_GROUP = 16  # entries or block sums one thread of a transform pass combines (4 levels a pass: a
 # thread's loads are serial, so short passes keep the latency of a two-vector transform low)
@@ -120,22 +121,22 @@ def _inverse_at(C: wp.array2d(dtype=wp.float32), r: int, i: int) -> wp.float64:
     return v
 
 
-@wp.kernel
-def chunk_sums(item_mat: wp.array(dtype=wp.uint8), item_start: wp.array(dtype=wp.int64),
-               item_len: wp.array(dtype=wp.uint16),
-               cols: wp.array(dtype=wp.uint16), vals: wp.array(dtype=wp.float32),
-               X: wp.array2d(dtype=wp.float32), n_max: int, step: int, partial: wp.array(dtype=wp.float32)):
-    """partial[item] = sign_j sum_e vals[e] x_j[cols[e]] over the item's coefficients
-    [item_start, item_start + item_len), all of one matrix j = item_mat (part of one row). History (n_max > 0):
-    matrices H_1..H_n_max then G_1..G_n_max against the wavelet-domain rings X (rows 0..n_max-1 u,
-    n_max.. p; step s in slot s mod n_max), sign - for H_k and + for G_k, x_j the ring slot of
-    step - k. One matrix (n_max = 0): x = X[0], sign +. Four coefficients a lane per iteration
-    (independent loads in flight)."""
-    item, lane = wp.tid()
+@wp.func
+def _item_sum(item: int, lane: int, stride: int, item_mat: wp.array(dtype=wp.uint8),
+              item_start: wp.array(dtype=wp.int64), item_len: wp.array(dtype=wp.uint16),
+              cols: wp.array(dtype=wp.uint16), vals: wp.array(dtype=wp.float32),
+              X: wp.array2d(dtype=wp.float32), n_max: int, step: int) -> float:
+    """One lane's share (coefficients lane, lane + stride, ...) of item ``item``'s signed sum
+    sign_j sum_e vals[e] x_j[cols[e]] over [item_start, item_start + item_len), all of one matrix
+    j = item_mat (part of one row). History (n_max > 0): matrices H_1..H_n_max then
+    G_1..G_n_max against the wavelet-domain rings X (rows 0..n_max-1 u, n_max.. p; step s in slot
+    s mod n_max), sign - for H_k and + for G_k, x_j the ring slot of step - k. One matrix
+    (n_max = 0): x = X[0], sign +. Four coefficients a lane per iteration (independent loads in
+    flight)."""
     j = int(item_mat[item])
     e = item_start[item] + wp.int64(lane)
     end = item_start[item] + wp.int64(item_len[item])
-    stride = wp.int64(wp.block_dim())
+    s = wp.int64(stride)
     x_row = int(0)
     sign = float(1.0)
     if n_max > 0:
@@ -145,29 +146,43 @@ def chunk_sums(item_mat: wp.array(dtype=wp.uint8), item_start: wp.array(dtype=wp
         else:
             x_row += n_max
     acc = float(0.0)
-    while e + wp.int64(3) * stride < end:  # four independent gathers in flight a lane
-        e1 = e + stride
-        e2 = e1 + stride
-        e3 = e2 + stride
+    while e + wp.int64(3) * s < end:  # four independent gathers in flight a lane
+        e1 = e + s
+        e2 = e1 + s
+        e3 = e2 + s
         acc += (vals[e] * X[x_row, int(cols[e])] + vals[e1] * X[x_row, int(cols[e1])]) + (
             vals[e2] * X[x_row, int(cols[e2])] + vals[e3] * X[x_row, int(cols[e3])])
-        e += wp.int64(4) * stride
+        e += wp.int64(4) * s
     while e < end:
         acc += vals[e] * X[x_row, int(cols[e])]
-        e += stride
-    wp.tile_store(partial, wp.tile_sum(wp.tile(sign * acc)), offset=item)
+        e += s
+    return sign * acc
 
 
 @wp.kernel
-def row_sums(row_items: wp.array(dtype=wp.int64), partial: wp.array(dtype=wp.float32), y_hat: wp.array2d(dtype=wp.float32)):
-    """y_hat[0, row] = the sum of the row's items' partial sums: one warp a row, lanes striding over
-    the items (a coarse row has hundreds), a fixed order (deterministic)."""
+def chunk_sums(item_mat: wp.array(dtype=wp.uint8), item_start: wp.array(dtype=wp.int64),
+               item_len: wp.array(dtype=wp.uint16),
+               cols: wp.array(dtype=wp.uint16), vals: wp.array(dtype=wp.float32),
+               X: wp.array2d(dtype=wp.float32), n_max: int, step: int, partial: wp.array(dtype=wp.float32)):
+    """partial[item] = the item's signed sum (``_item_sum``): one block an item, its lanes striding
+    (the CPU's form: a CPU block has one thread)."""
+    item, lane = wp.tid()
+    acc = _item_sum(item, lane, wp.block_dim(), item_mat, item_start, item_len, cols, vals, X, n_max, step)
+    wp.tile_store(partial, wp.tile_sum(wp.tile(acc)), offset=item)
+
+
+@wp.kernel
+def row_sums(row_items: wp.array(dtype=wp.int64), row_list: wp.array(dtype=wp.int32),
+             partial: wp.array(dtype=wp.float32), y_hat: wp.array2d(dtype=wp.float32)):
+    """y_hat[0, row] = the sum of the row's items' partial sums (partial[row_list[i]] for i in
+    row_items[row] .. row_items[row + 1]): one block a row, lanes striding over the items (a coarse
+    row has hundreds), a fixed order (deterministic)."""
     row, lane = wp.tid()
     acc = float(0.0)
     i = row_items[row] + wp.int64(lane)
     end = row_items[row + 1]
     while i < end:
-        acc += partial[i]
+        acc += partial[int(row_list[i])]
         i += wp.int64(wp.block_dim())
     wp.tile_store(y_hat[0], wp.tile_sum(wp.tile(acc)), offset=row)
 

@@ -23,8 +23,8 @@ MATVEC_BLOCK = wp.constant(256)
 
 @wp.kernel
 def history_matvec(
-    H: wp.array3d(dtype=Any),
-    G: wp.array3d(dtype=Any),
+    H: wp.array2d(dtype=Any),
+    G: wp.array2d(dtype=Any),
     U: wp.array2d(dtype=Any),
     P: wp.array2d(dtype=Any),
     DQ: wp.array3d(dtype=Any),
@@ -36,20 +36,24 @@ def history_matvec(
 
         h_n = sum_{k=1}^{n_max} ( -H_k u_{n-k} + G_k p_{n-k} + [D_k Q_k] [a - g', alpha]_{n-k} ).
 
-    H[k-1], G[k-1] (vec4 columns) hold H_k, G_k (k = 1..n_max); DQ[k-1] is the (3N, 6) block
-    [D_k Q_k]. The ring buffers U, P (n_max, pitch / 4) and B (n_max, 6) hold step m in row
-    m mod n_max.
+    H, G (n_max 3N rows of vec4 columns) hold H_k, G_k (k = 1..n_max) one after the other: row
+    (k - 1) 3N + i is row i of H_k. Two-dimensional on purpose: a Warp array's strides are 32-bit
+    byte counts, and a (n_max, 3N, 3N) float32 stack's first stride passes 2 GiB at N ~ 7.7k. DQ[k-1]
+    is the (3N, 6) block [D_k Q_k]. The ring buffers U, P (n_max, pitch / 4) and B (n_max, 6) hold
+    step m in row m mod n_max.
     """
     row, lane = wp.tid()
     stride = wp.block_dim()
-    n_max = H.shape[0]
-    cols = H.shape[2]
+    n_max = U.shape[0]
+    n = H.shape[0] // n_max
+    cols = H.shape[1]
     acc = h.dtype(0.0)
     for k in range(1, n_max + 1):
         slot = (step - k) % n_max
+        r = (k - 1) * n + row
         c = lane
         while c < cols:
-            acc += wp.dot(G[k - 1, row, c], P[slot, c]) - wp.dot(H[k - 1, row, c], U[slot, c])
+            acc += wp.dot(G[r, c], P[slot, c]) - wp.dot(H[r, c], U[slot, c])
             c += stride
         j = lane
         while j < 6:

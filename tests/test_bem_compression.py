@@ -184,14 +184,17 @@ def test_device_kernels_equal_the_host_compressed_history(cube) -> None:
     parts = (bounds, cols, vals, *work_items(bounds, chunk))
     assert np.max(parts[5]) <= chunk  # long parts are cut: more items than (row, matrix) parts
     assert len(parts[3]) > np.count_nonzero(np.diff(bounds, axis=1))
-    types = (wp.int64, wp.uint16, wp.float32, wp.uint8, wp.int64, wp.uint16, wp.int64)
-    b, c, v, item_mat, item_start, item_len, row_items = (
+    assert np.all(np.diff(parts[3].astype(int)) >= 0)  # matrix by matrix
+    assert np.array_equal(np.sort(parts[7]), np.arange(len(parts[3])))  # every item in one row's list
+    types = (wp.int64, wp.uint16, wp.float32, wp.uint8, wp.int64, wp.uint16, wp.int64, wp.int32)
+    b, c, v, item_mat, item_start, item_len, row_items, row_list = (
         wp.array(a, dtype=t, device="cpu") for a, t in zip(parts, types))
     partial = wp.zeros(len(item_mat), dtype=wp.float32, device="cpu")
     wp.launch_tiled(kc.chunk_sums, dim=len(item_mat), block_dim=int(kc.SPMV_BLOCK), device="cpu",
                     inputs=[item_mat, item_start, item_len, c, v, hat, n_max, step, partial])
     h_hat = wp.zeros((1, size), dtype=wp.float32, device="cpu")
-    wp.launch_tiled(kc.row_sums, dim=size, block_dim=int(kc.SPMV_BLOCK), device="cpu", inputs=[row_items, partial, h_hat])
+    wp.launch_tiled(kc.row_sums, dim=size, block_dim=int(kc.SPMV_BLOCK), device="cpu",
+                    inputs=[row_items, row_list, partial, h_hat])
     h = wp.zeros(n, dtype=wp.float32, device="cpu")  # inverse transform, back to the original order
     wp.launch(kc.inverse_add, dim=n, inputs=[h_hat, perm, h], device="cpu")
     got = h.numpy().astype(np.float64)

@@ -6,16 +6,21 @@ per stage as it finishes (a long run that stops early still reports what it did)
 
 The body is the bumpy cube of the paper's Table 1 (jelly, dt 0.01) at ``divisions`` (N = 6 d^2 + 2
 nodes), built without the cache (a 10k-node set is ~80 GB), the factorization on the GPU when
-CuPy is there (``wsim.bem.factorization``), compressed at CR ``ratio`` on the device. It then
-falls freely for ``steps`` steps with a traction pulse on one side: the check is physical (the
-frame falls as the frame integrator's g dt^2 n (n + 1) / 2 after n steps - the pulse pushes
-sideways -, the displacement stays finite and rings down). Reported: the build's stages, the dense operator bytes a step would read against the
-compressed ones, seconds per step and per unconstrained solve, the device's peak memory.
+CuPy is there (``wsim.bem.factorization``), compressed at CR ``ratio`` on the device. Stages:
+``build``; ``compress`` (time, bytes, H_1's Frobenius error); ``accuracy`` (each compressed
+matrix's relative matvec error against the dense one on smooth surface fields and on random
+vectors); then one ``step`` line per ``--variants`` entry (compressed, dense): the body falls
+freely for ``steps`` steps with a traction pulse on one side (the frame must fall as the frame
+integrator's g dt^2 n (n + 1) / 2, the displacement ring down), with seconds per step and per
+unconstrained solve, the bytes a step reads and the peaks of device and host memory; and a
+``trajectory`` line: the compressed displacements against the dense ones. ``--watch-memory S``
+reports the host memory every S seconds on stderr, with where the run is.
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import resource
 import time
@@ -27,13 +32,58 @@ def emit(**fields) -> None:
     print(json.dumps(fields), flush=True)
 
 
+def _meminfo() -> dict[str, int]:
+    """This process's resident and peak bytes and the host's available bytes (Linux /proc)."""
+    out = {}
+    for path, keys in (("/proc/self/status", ("VmRSS", "VmHWM")), ("/proc/meminfo", ("MemAvailable",))):
+        try:
+            with open(path) as f:
+                for line in f:
+                    name, _, rest = line.partition(":")
+                    if name in keys:
+                        out[name] = int(rest.split()[0]) * 1024
+        except OSError:
+            pass
+    return out
+
+
+def watch_memory(period: float) -> None:
+    """Report host memory every ``period`` seconds on stderr (a 10k-node build runs close to a
+    128 GB host's limit: where it dies is worth knowing)."""
+    import sys
+    import threading
+
+    t0 = time.perf_counter()
+
+    main_id = threading.main_thread().ident
+
+    def loop() -> None:
+        import traceback
+
+        while True:
+            time.sleep(period)
+            frame = sys._current_frames().get(main_id)
+            stack = traceback.extract_stack(frame) if frame else []
+            ours = [f for f in stack if "/wsim/" in f.filename or "/tools/" in f.filename]
+            where = [f"{f.filename.rsplit('/', 1)[-1]}:{f.lineno} {f.name}" for f in (ours[-4:] + stack[-2:])]
+            print(json.dumps({"stage": "memory", "t": round(time.perf_counter() - t0, 1), **_meminfo(), "where": where}),
+                  file=sys.stderr, flush=True)
+
+    threading.Thread(target=loop, daemon=True).start()
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default=None)
     ap.add_argument("--divisions", type=int, default=41)
     ap.add_argument("--ratio", type=float, default=32.0)
     ap.add_argument("--steps", type=int, default=40)
+    ap.add_argument("--variants", default="compressed,dense",
+                    help="comma list of compressed, dense (the dense set needs 44 GB of device memory at N = 10088)")
+    ap.add_argument("--watch-memory", type=float, default=0.0, help="report host memory every this many seconds")
     args = ap.parse_args()
+    if args.watch_memory > 0:
+        watch_memory(args.watch_memory)
 
     import warp as wp
 
@@ -61,45 +111,103 @@ def main() -> None:
     t0 = time.perf_counter()
     so = stepper.step_operators(ops, dev, backend, ("ratio", args.ratio), cache=False)
     wp.synchronize_device(dev)
+    ch = so.compressed
     emit(stage="compress", ratio=args.ratio, seconds=round(time.perf_counter() - t0, 2),
-         kept_ratio=so.compressed.ratio, history_bytes=so.history_bytes, step_bytes=so.matrix_bytes,
+         kept_ratio=ch.ratio, history_bytes=so.history_bytes, step_bytes=so.matrix_bytes,
          dense_over_compressed=dense_step_bytes / so.matrix_bytes,
          H0_inv_Gp_dense_bytes=int(so.H0_inv_Gp.capacity),
-         relative_frobenius_error_H1=so.compressed.H[0].relative_error)
+         relative_frobenius_error_H1=ch.H[0].relative_error)
+    accuracy(ops, ch)
 
+    results = {}
+    for variant in args.variants.split(","):
+        results[variant] = run_variant(variant, ops, cube, jelly, dt, dev, backend, args)
+    del so  # held until here: the compressed variant shares its compressed set
+    if "dense" in results and results["dense"] is not None:
+        ref = results["dense"]
+        for name, u in results.items():
+            if name != "dense" and u is not None:
+                m = min(len(u), len(ref))
+                scale = max(float(np.abs(ref[:m]).max()), 1e-30)
+                emit(stage="trajectory", variant=name, against="dense", steps=m,
+                     max_displacement_error_over_max_displacement=float(np.abs(u[:m] - ref[:m]).max()) / scale)
+
+
+def accuracy(ops, ch) -> None:
+    """Each compressed matrix's relative matvec error against the dense one, on smooth surface
+    fields (what a step mostly multiplies) and on random vectors (the worst case for a Haar basis)."""
+    from wsim.bem.compression import smooth_fields
+
+    rng = np.random.default_rng(1)
+    n3 = 3 * ops.n_nodes
+    X = {"smooth": smooth_fields(ops.surface.nodes, 4, seed=7), "random": rng.standard_normal((n3, 4))}
+    names = [*(f"H{k}" for k in range(1, ops.n_max + 1)), *(f"G{k}" for k in range(1, ops.n_max + 1)), "H0_inv"]
+    dense = [*(ops.H[k] for k in range(1, ops.n_max + 1)), *(ops.G[k] for k in range(1, ops.n_max + 1)), ops.H0_inv]
+    out = {}
+    for name, A, m in zip(names, dense, ch.matrices):
+        errs = {}
+        for kind, x in X.items():
+            exact = A @ x.astype(A.dtype)
+            approx = np.stack([m.matvec(x[:, j]) for j in range(x.shape[1])], axis=1)
+            errs[kind] = float(np.linalg.norm(approx - exact) / np.linalg.norm(exact))
+        out[name] = errs
+    emit(stage="accuracy", relative_matvec_error=out)
+
+
+def run_variant(variant: str, ops, cube, jelly, dt: float, dev, backend: str, args):
+    """Step the body ``steps`` times as ``variant`` ("compressed" at the ratio, or "dense"): one JSON
+    line, and the displacement of every step (for the trajectory comparison) or None when it could
+    not run."""
+    import warp as wp
+
+    import wsim
+
+    kw = {"dense": {}, "compressed": {"compression": args.ratio}}[variant]
     world = wsim.World(fps=1.0 / dt, device=dev.alias, gravity=(0.0, -9.81, 0.0))
-    body = world.add(wsim.BemBody(cube, jelly, dt, operators=ops, matvec=backend, compression=args.ratio, cache=False))
-    x, nrm = body.rest_vertices, body.rest_normals
-    body.add_traction(lambda t: -2e3 * nrm * (x[:, :1] > 0) * (t < 0.05))
-    body.step()
-    wp.synchronize_device(dev)
-    t0 = time.perf_counter()
-    peak_u = 0.0
-    taken = 0
-    for _ in range(args.steps):
+    try:
+        body = world.add(wsim.BemBody(cube, jelly, dt, operators=ops, matvec=backend, cache=False, name=variant, **kw))
+        x, nrm = body.rest_vertices, body.rest_normals
+        body.add_traction(lambda t: -2e3 * nrm * (x[:, :1] > 0) * (t < 0.05))
+        t0 = time.perf_counter()
         body.step()
-        taken += 1
-        peak_u = max(peak_u, float(np.abs(body.displacement()).max()))
-        if body.failed:  # a diverging run is reported, not timed
-            try:
-                body.check_finite(0, body.time)
-            except wsim.SimulationDiverged as exc:
-                emit(stage="step", failed=str(exc), steps=taken + 1, peak_displacement_m=peak_u)
-            return
-    wp.synchronize_device(dev)
-    per_step = (time.perf_counter() - t0) / args.steps
+        wp.synchronize_device(dev)
+        first = time.perf_counter() - t0
+    except (MemoryError, RuntimeError) as exc:  # dense operators that do not fit
+        emit(stage="step", variant=variant, skipped=f"{type(exc).__name__}: {exc}"[:300])
+        return None
+    peak = []
+    us = [body.displacement().copy()]
     t0 = time.perf_counter()
-    for _ in range(10):
-        body.unconstrained_solve()
+    failed = None
+    for _ in range(args.steps):
+        try:
+            body.step()
+        except (wsim.SimulationDiverged, np.linalg.LinAlgError) as exc:
+            failed = str(exc)[:300]
+            break
+        u = body.displacement()
+        us.append(u.copy())
+        peak.append(float(np.abs(u).max()))
     wp.synchronize_device(dev)
-    uncnst = (time.perf_counter() - t0) / 10
-    n = args.steps + 1
+    per_step = (time.perf_counter() - t0) / max(len(peak), 1)
+    uncnst = None
+    if failed is None:
+        t0 = time.perf_counter()
+        for _ in range(10):
+            body.unconstrained_solve()
+        wp.synchronize_device(dev)
+        uncnst = (time.perf_counter() - t0) / 10
+    n = len(us)
     fall = float(body.state.frame.T[1] - body._T0[1])
-    emit(stage="step", steps=args.steps + 1, seconds_per_step=per_step, uncnst_seconds=uncnst,
-         frame_drop_m=fall, free_fall_m=-9.81 * dt * dt * n * (n + 1) / 2, peak_displacement_m=peak_u,
-         final_displacement_m=float(np.abs(body.displacement()).max()),
+    emit(stage="step", variant=variant, steps=n, failed=failed, first_step_seconds=first, seconds_per_step=per_step,
+         uncnst_seconds=uncnst, frame_drop_m=fall, free_fall_m=-9.81 * dt * dt * n * (n + 1) / 2,
+         max_displacement_by_step=[round(v, 9) for v in peak],
+         step_matrix_bytes=body._so.matrix_bytes,
          device_peak_bytes=wp.get_mempool_used_mem_high(dev) if dev.is_cuda else None,
          host_peak_bytes=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
+    del body, world
+    gc.collect()
+    return np.stack(us)
 
 
 if __name__ == "__main__":

@@ -487,19 +487,23 @@ def pack_rows(matrices: Sequence[CompressedMatrix]) -> tuple[np.ndarray, np.ndar
 def work_items(bounds: np.ndarray, chunk: int) -> tuple[np.ndarray, ...]:
     """The rows of a ``pack_rows`` layout cut into work items, each part of one matrix's part of one
     row and at most ``chunk`` (<= 65535) coefficients long
-    (``wsim.kernels.bem_compressed.chunk_sums``): (item matrix uint8, item start int64, item length
-    uint16, row_items (size + 1) int64: the items of row r are row_items[r] .. row_items[r + 1]).
-    11 bytes an item: at CR 32 on the 2906-node cube about 1 % of the coefficients' bytes."""
+    (``wsim.kernels.bem_compressed.chunk_sums``), ordered matrix by matrix (all of H_1's items, then
+    H_2's, ...): the GPU then works on one or two matrices at a time, and the vector each gathers
+    from stays in its SMs' L1 cache. Returns (item matrix uint8, item start int64, item length
+    uint16, row_items (size + 1) int64, row_list int32): the items of row r are
+    row_list[row_items[r] .. row_items[r + 1]], in matrix order. 15 bytes an item: at CR 32 on the
+    2906-node cube about 1 % of the coefficients' bytes."""
     size, J = bounds.shape[0], bounds.shape[1] - 1
     if J > 255 or chunk > 65535:
         raise InvalidParameter(f"work_items: {J} matrices (<= 255) and chunks of {chunk} (<= 65535)")
-    start, end = bounds[:, :J].ravel(), bounds[:, 1:].ravel()  # segment (row, j), row-major
+    start, end = bounds[:, :J].T.ravel(), bounds[:, 1:].T.ravel()  # segment (j, row), matrix-major
     per_seg = -(-(end - start) // chunk)
-    per_row = per_seg.reshape(size, J).sum(axis=1)
-    row_items = np.concatenate([[0], np.cumsum(per_row)]).astype(np.int64)
     seg = np.repeat(np.arange(size * J), per_seg)
     first = np.concatenate([[0], np.cumsum(per_seg)])[:-1]
     local = np.arange(len(seg)) - first[seg]
     item_start = start[seg] + local * chunk
     item_len = np.minimum(item_start + chunk, end[seg]) - item_start
-    return (seg % J).astype(np.uint8), item_start.astype(np.int64), item_len.astype(np.uint16), row_items
+    row = seg % size
+    row_list = np.argsort(row, kind="stable").astype(np.int32)  # by row, matrix order kept within a row
+    row_items = np.concatenate([[0], np.cumsum(np.bincount(row, minlength=size))]).astype(np.int64)
+    return (seg // size).astype(np.uint8), item_start.astype(np.int64), item_len.astype(np.uint16), row_items, row_list

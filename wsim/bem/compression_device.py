@@ -108,6 +108,12 @@ class DeviceCoefficients:
                 hi = mid
             else:
                 lo = mid + 1
+        found = self._count(hi)[0]
+        if found > 2 * keep + self.size:  # ties at one float32 threshold cannot explain this
+            below = self._count(hi - 1)[0] if hi > 1 else 0
+            raise RuntimeError(f"DeviceCoefficients.level_for: {keep} coefficients asked, level {hi} "
+                               f"(threshold {_threshold(hi):.3e}) keeps {found} and the level below "
+                               f"{below}; ||C||^2 = {self.total2:.3e} (non-finite coefficients?)")
         return hi
 
     def dropped(self, level: int, X_hat: np.ndarray) -> np.ndarray:

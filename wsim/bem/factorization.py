@@ -16,6 +16,8 @@ same factors to round-off (pivoting may differ only on exact ties).
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import scipy.linalg
 
@@ -46,14 +48,17 @@ def resolve(backend: str, cuda: bool) -> str:
     return backend
 
 
-def factorize(H0: np.ndarray, Gp: np.ndarray, backend: str = "scipy", device_ordinal: int = 0
-              ) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray, np.ndarray]:
-    """(LU factors and pivots of H_0 in scipy's layout, H_0^-1, H_0^-1 G'), all float64 host arrays,
-    with a resolved ``backend`` ("scipy" or "cupy" on GPU ``device_ordinal``)."""
+def factorize(H0: np.ndarray, Gp: np.ndarray, backend: str = "scipy", device_ordinal: int = 0,
+              dtype: Any = np.float64) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray, np.ndarray]:
+    """(LU factors and pivots of H_0 in scipy's layout (float64), H_0^-1 and H_0^-1 G' in ``dtype``)
+    as host arrays, with a resolved ``backend`` ("scipy" or "cupy" on GPU ``device_ordinal``). The
+    products are solved in float64 and cast where they are made (on the GPU for CuPy): a 10k-node
+    body's float64 copies would be 15 GB of host memory more at the build's peak."""
     n = H0.shape[0]
     if backend == "scipy":
         lu = scipy.linalg.lu_factor(H0, check_finite=True)
-        return lu, scipy.linalg.lu_solve(lu, np.eye(n)), scipy.linalg.lu_solve(lu, Gp)
+        return (lu, scipy.linalg.lu_solve(lu, np.eye(n)).astype(dtype, copy=False),
+                scipy.linalg.lu_solve(lu, Gp).astype(dtype, copy=False))
     cp = _cupy()
     import cupyx.scipy.linalg as cpl
 
@@ -64,11 +69,11 @@ def factorize(H0: np.ndarray, Gp: np.ndarray, backend: str = "scipy", device_ord
         lu, piv = cpl.lu_factor(a, overwrite_a=True, check_finite=False)
         del a
         eye = cp.eye(n, dtype=cp.float64)
-        H0_inv = cpl.lu_solve((lu, piv), eye, overwrite_b=True, check_finite=False).get()
+        H0_inv = cpl.lu_solve((lu, piv), eye, overwrite_b=True, check_finite=False).astype(dtype, copy=False).get()
         del eye
         H0_inv_Gp = cpl.lu_solve((lu, piv), cp.asarray(Gp, dtype=cp.float64), overwrite_b=True,
-                                 check_finite=False).get()
-        factors = (lu.get(), piv.get().astype(np.int32))
+                                 check_finite=False).astype(dtype, copy=False).get()
+        factors = (lu.get(order="F"), piv.get().astype(np.int32))  # Fortran order, as LAPACK (scipy) wants it: no copy a solve
         del lu, piv
         cp.get_default_memory_pool().free_all_blocks()
     return factors, H0_inv, H0_inv_Gp

@@ -259,8 +259,9 @@ def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: st
     cols = 3 * n
     # host results in page-locked memory on CUDA: device -> host copies at full PCIe/NVLink speed
     pinned = dev.is_cuda
-    H_host = wp.empty((n_max + 1, cols, cols), dtype=wp_dtype, device="cpu", pinned=pinned)
-    G_host = wp.empty((n_max + 1, cols, cols), dtype=wp_dtype, device="cpu", pinned=pinned)
+    # 2-D (Warp's strides are 32 bits: a 3-D stack of 10k-node matrices would overflow them)
+    H_host = wp.empty(((n_max + 1) * cols, cols), dtype=wp_dtype, device="cpu", pinned=pinned)
+    G_host = wp.empty(((n_max + 1) * cols, cols), dtype=wp_dtype, device="cpu", pinned=pinned)
     H0_host = wp.empty((cols, cols), dtype=wp.float64, device="cpu", pinned=pinned)
     G0_host = wp.empty((cols, cols), dtype=wp.float64, device="cpu", pinned=pinned)
     timings["setup"] = time.perf_counter() - t0
@@ -268,9 +269,9 @@ def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: st
     bar = tqdm(total=len(blocks) * len(s_l), desc="BEM operators", unit="sample", disable=not show_progress(progress))
     with wp.ScopedDevice(dev):
         block = assembler.block(rows)
-        acc_H = wp.zeros((n_max + 1, 3 * rows, cols), dtype=wp.float64)
+        acc_H = wp.zeros(((n_max + 1) * 3 * rows, cols), dtype=wp.float64)  # H_k: rows k 3 rows ..
         acc_G = wp.zeros_like(acc_H)
-        cast = wp.empty((n_max + 1, 3 * rows, cols), dtype=wp.float32) if wp_dtype == wp.float32 else None
+        cast = wp.empty(acc_H.shape, dtype=wp.float32) if wp_dtype == wp.float32 else None
         for r0, nr in blocks:
             t1 = time.perf_counter()
             acc_H.zero_()
@@ -293,14 +294,15 @@ def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: st
                 wp.copy(host0, acc, dest_offset=3 * r0 * cols, src_offset=0, count=count)
                 src = acc
                 if cast is not None:
-                    wp.launch(ka.to_float32, dim=(n_max + 1, 3 * nr, cols), inputs=[acc, cast])
+                    wp.launch(ka.to_float32, dim=acc.shape, inputs=[acc, cast])
                     src = cast
                 for k in range(n_max + 1):
                     wp.copy(host, src, dest_offset=k * cols * cols + 3 * r0 * cols, src_offset=k * 3 * rows * cols, count=count)
             wp.synchronize_device(dev)
             t_transfer += time.perf_counter() - t2
             t_assembly += t2 - t1
-    H, G, H0, G0 = H_host.numpy(), G_host.numpy(), H0_host.numpy(), G0_host.numpy()
+    H, G = (a.numpy().reshape(n_max + 1, cols, cols) for a in (H_host, G_host))
+    H0, G0 = H0_host.numpy(), G0_host.numpy()
     bar.close()
     timings["assembly"] = t_assembly
     timings["transfer"] = t_transfer
@@ -308,11 +310,11 @@ def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: st
     Gp = G0 + D[0] @ A + Q[0] @ C
     del G0, G0_host  # a large body's float64 G_0 is gigabytes: gone before the factors arrive
     backend = factorization_backend(factorization, dev.is_cuda)
-    lu, H0_inv, H0_inv_Gp = factorize(H0, Gp, backend, dev.ordinal if dev.is_cuda else 0)
+    lu, H0_inv, H0_inv_Gp = factorize(H0, Gp, backend, dev.ordinal if dev.is_cuda else 0, dtype)
     del H0, H0_host
     timings["factorization"] = time.perf_counter() - t3
     return BemOperators(
         surface=surface, material=material, dt=dt, method=method, precision=precision, n_max=n_max, r_max=r_max,
-        H=H, G=G, D=D, Q=Q, H0_lu=lu, H0_inv=H0_inv.astype(dtype), H0_inv_Gp=H0_inv_Gp.astype(dtype), Gp=Gp,
+        H=H, G=G, D=D, Q=Q, H0_lu=lu, H0_inv=H0_inv, H0_inv_Gp=H0_inv_Gp, Gp=Gp,
         A=A, C=C, mass=props.mass, com=props.com, inertia=props.inertia, volume=props.volume,
     )

@@ -37,6 +37,7 @@ from wsim.bem.correction import Correction
 from wsim.bem.operators import PRECISIONS, BemOperators
 from wsim.errors import InvalidParameter
 from wsim.kernels import bem_compressed as kc
+from wsim.kernels import bem_compressed_warps as kw
 from wsim.kernels import bem_step as ks
 
 BACKENDS = ("auto", "warp", "blas")
@@ -55,7 +56,7 @@ class StepOperators:
     backend: str
     dtype: Any
     pitch: int
-    H: wp.array  # (n_max, 3N, pitch): H_1..H_n_max
+    H: wp.array  # (n_max 3N, pitch): H_1..H_n_max one after the other (2-D: see ``kernels.bem_step``)
     G: wp.array
     DQ: wp.array  # (n_max, 3N, 6)
     H0_inv: wp.array  # (3N, pitch)
@@ -162,7 +163,8 @@ def step_operators(ops: BemOperators, device: wp.Device, backend: str,
         def upload(a: np.ndarray) -> wp.array:
             return wp.array(np.ascontiguousarray(a, dtype=dtype), dtype=wdt, device=device, copy=False)
 
-    mats = {"H": upload(ops.H[1:]), "G": upload(ops.G[1:]), "H0_inv": upload(ops.H0_inv),
+    stacked = (ops.n_max * n3, n3)  # 2-D: Warp's 32-bit strides would overflow a 3-D stack past 2 GiB a matrix
+    mats = {"H": upload(ops.H[1:].reshape(stacked)), "G": upload(ops.G[1:].reshape(stacked)), "H0_inv": upload(ops.H0_inv),
             "H0_inv_Gp": upload(ops.H0_inv_Gp)}
     out = StepOperators(
         operators=ops, device=device, backend=backend, dtype=wdt, pitch=pitch, DQ=wp.array(dq, dtype=wdt, device=device),
@@ -255,10 +257,10 @@ def _compressed_step_operators(ops: BemOperators, device: wp.Device, backend: st
         vec4 = {"H0_inv_Gp": vec4_view(H0_inv_Gp)}
 
         def arrays(mats) -> tuple[wp.array, ...]:
-            """(cols, vals, item_mat, item_start, item_len, row_items) on the device."""
+            """(cols, vals, item_mat, item_start, item_len, row_items, row_list) on the device."""
             b, c, v = pack_rows(mats)
             parts = (c, v, *work_items(b, kc.CHUNK))
-            types = (wp.uint16, wp.float32, wp.uint8, wp.int64, wp.uint16, wp.int64)
+            types = (wp.uint16, wp.float32, wp.uint8, wp.int64, wp.uint16, wp.int64, wp.int32)
             return tuple(wp.array(a, dtype=t, device=device) for a, t in zip(parts, types))
 
         packed = {"perm": wp.array(ch.perm.astype(np.int32), dtype=wp.int32, device=device), "size": ch.size,
@@ -269,7 +271,7 @@ def _compressed_step_operators(ops: BemOperators, device: wp.Device, backend: st
         vec4 = {}
     out = StepOperators(
         operators=ops, device=device, backend=backend, dtype=wdt, pitch=pitch,
-        H=wp.zeros((0, 0, pitch), dtype=wdt, device=device), G=wp.zeros((0, 0, pitch), dtype=wdt, device=device),
+        H=wp.zeros((0, pitch), dtype=wdt, device=device), G=wp.zeros((0, pitch), dtype=wdt, device=device),
         DQ=wp.array(np.concatenate([ops.D[1:], ops.Q[1:]], axis=2).astype(dtype), dtype=wdt, device=device),
         H0_inv=wp.zeros((0, pitch), dtype=wdt, device=device), H0_inv_Gp=H0_inv_Gp,
         E=ops.solve_H0(np.hstack([ops.D[0], ops.Q[0]])), vec4=vec4, compressed=ch, packed=packed)
@@ -291,7 +293,8 @@ class CompressedScratch:
         self.one_hat = wp.zeros((1, size), dtype=wp.float32, device=d)
         self.y_hat = wp.zeros((1, size), dtype=wp.float32, device=d)
         items = max(len(so.packed["history"][2]), len(so.packed["H0_inv"][2]))
-        self.partial = wp.zeros(items, dtype=wp.float32, device=d)
+        warps = int(kw.WARPS)
+        self.partial = wp.zeros(-(-items // warps) * warps, dtype=wp.float32, device=d)  # whole blocks of items
 
 
 def _scalar(a: wp.array, so: StepOperators) -> wp.array:
@@ -345,11 +348,16 @@ def ring_written(so: StepOperators, U: wp.array, P: wp.array, slot: int, scratch
 
 def _sparse_sum(so: StepOperators, part: str, X: wp.array, n_max: int, step: int, sc: CompressedScratch) -> None:
     """sc.y_hat = the packed ``part``'s product with X (``chunk_sums`` then ``row_sums``)."""
-    cols, vals, item_mat, item_start, item_len, row_items = so.packed[part]
-    wp.launch_tiled(kc.chunk_sums, dim=len(item_mat), block_dim=int(kc.SPMV_BLOCK), device=so.device,
-                    inputs=[item_mat, item_start, item_len, cols, vals, X, n_max, step, sc.partial])
+    cols, vals, item_mat, item_start, item_len, row_items, row_list = so.packed[part]
+    args = [item_mat, item_start, item_len, cols, vals, X, n_max, step, sc.partial]
+    if so.device.is_cuda:
+        warps = int(kw.WARPS)
+        wp.launch_tiled(kw.chunk_sums_warps, dim=-(-len(item_mat) // warps), block_dim=32 * warps,
+                        device=so.device, inputs=args)
+    else:
+        wp.launch_tiled(kc.chunk_sums, dim=len(item_mat), block_dim=int(kc.SPMV_BLOCK), device=so.device, inputs=args)
     wp.launch_tiled(kc.row_sums, dim=so.packed["size"], block_dim=int(kc.SPMV_BLOCK), device=so.device,
-                    inputs=[row_items, sc.partial, sc.y_hat])
+                    inputs=[row_items, row_list, sc.partial, sc.y_hat])
 
 
 def _compressed_history(so: StepOperators, U: wp.array, P: wp.array, B: wp.array, step: int, h: wp.array,
@@ -407,7 +415,7 @@ def history(so: StepOperators, U: wp.array, P: wp.array, B: wp.array, step: int,
             out += DQ[k - 1] @ Bn[(step - k) % n_max]
         h.numpy()[: so.size] = out
         return
-    H, G = so.H.numpy(), so.G.numpy()
+    H, G = (a.numpy().reshape(n_max, so.size, so.pitch) for a in (so.H, so.G))
     out = np.zeros(so.size, dtype=Un.dtype)
     for k in range(1, n_max + 1):
         s = (step - k) % n_max
