@@ -8,8 +8,9 @@ are summed against them row by row, and one inverse transform brings h back.
 
 * ``haar_first_pass`` + ``haar_pass``: the forward transform of rows in passes of 4 levels
   (log2(size) / 4 launches, 4 for a size of 16384): a thread loads 16 block sums of the previous
-  pass (the reordered, zero-padded entries in the first, gathered in the kernel) into registers
-  at once and combines them into their 15 detail coefficients and their sum, float64 throughout.
+  pass (the reordered, zero-padded entries in the first, gathered in the kernel from one or two
+  source arrays) into registers at once and combines them into their 15 detail coefficients and
+  their sum, float64 throughout.
 * the inverse transform, fused with the scatter back to the original order (``inverse_history``,
   ``inverse_add``): x_i = c_0 / sqrt(n) + sum over the log2(n) blocks holding i of
   +-c_block / sqrt(m) (+ in the block's first half).
@@ -32,12 +33,14 @@ from typing import Any
 import warp as wp
 
 SPMV_BLOCK = wp.constant(32)  # one warp an item (``chunk_sums``, ``row_sums``)
-CHUNK = 512  # coefficients per work item of ``chunk_sums`` (16 per lane): rows of any length, balanced
-PASS_GROUP = 16  # entries or block sums one thread of a transform pass combines (4 levels a pass: a
-# thread's loads are serial, so short passes keep the latency of a two-vector transform low)
+CHUNK = 1024  # coefficients per work item of ``chunk_sums`` (8 quads a lane): rows of any length, balanced
+# (on an H100 at CR 32: 128 -> 124 us, 256 -> 80, 512 -> 77, 1024 -> 74 for the sum of the 2906-node cube)
+PASS_GROUP = 16  # entries or block sums one thread of a transform pass combines (4 levels a pass: 32
+# in registers made a two-vector transform slower on an H100, 68 us against 41, though one launch fewer)
 
 
 vec16d = wp.types.vector(length=16, dtype=wp.float64)
+vec4us = wp.types.vector(length=4, dtype=wp.uint16)  # four uint16 columns: one 8-byte load
 
 
 @wp.func
@@ -62,14 +65,16 @@ def _pass_levels(x: vec16d, group: int, bs: int, size: int, base: int, out: wp.a
 
 
 @wp.kernel
-def haar_first_pass(src: wp.array2d(dtype=wp.float32), src_row0: int, perm: wp.array(dtype=wp.int32), group: int,
-                    size: int, out_row0: int, out_row_stride: int, sums_row0: int,
+def haar_first_pass(src_a: wp.array2d(dtype=wp.float32), row_a: int, rows_a: int,
+                    src_b: wp.array2d(dtype=wp.float32), row_b: int, perm: wp.array(dtype=wp.int32), group: int,
+                    size: int, out_row0: int, out_row_stride: int,
                     out: wp.array2d(dtype=wp.float32), sums: wp.array2d(dtype=wp.float64)):
     """The first pass of the forward transform (``wsim.bem.compression.haar`` layout) of rows
-    src[src_row0 + r] reordered by ``perm`` and zero padded to ``size``: thread (r, g) loads its
-    ``group`` (16) entries x_i = src[src_row0 + r, perm[i]] (i from g group; 0 past len(perm)) into
-    registers at once, writes the detail coefficients of the 4 finest levels (``_pass_levels``) to
-    out[out_row0 + r out_row_stride] and the group's sum to sums[sums_row0 + r, g] for the next pass
+    reordered by ``perm`` and zero padded to ``size``: rows r < rows_a are src_a[row_a + r], the
+    others src_b[row_b + r - rows_a] (a step's u and p in one launch). Thread (r, g) loads its
+    ``group`` (16) entries x_i = src[.., perm[i]] (i from g group; 0 past len(perm)) into
+    registers at once, writes the detail coefficients of the 4 finest levels (``_pass_levels``)
+    to out[out_row0 + r out_row_stride] and the group's sum to sums[r, g] for the next pass
     (``haar_pass``). Float64 sums."""
     r, g = wp.tid()
     base = g * group
@@ -77,9 +82,12 @@ def haar_first_pass(src: wp.array2d(dtype=wp.float32), src_row0: int, perm: wp.a
     x = vec16d()
     for i in range(16):
         if i < group and base + i < n:
-            x[i] = wp.float64(src[src_row0 + r, perm[base + i]])
+            if r < rows_a:
+                x[i] = wp.float64(src_a[row_a + r, perm[base + i]])
+            else:
+                x[i] = wp.float64(src_b[row_b + r - rows_a, perm[base + i]])
     total = _pass_levels(x, group, 1, size, base, out, out_row0 + r * out_row_stride)
-    sums[sums_row0 + r, g] = total
+    sums[r, g] = total
     if group == size:
         out[out_row0 + r * out_row_stride, 0] = wp.float32(total / wp.sqrt(wp.float64(size)))
 
@@ -106,17 +114,19 @@ def haar_pass(src: wp.array2d(dtype=wp.float64), group: int, size: int, out_row0
 
 @wp.func
 def _inverse_at(C: wp.array2d(dtype=wp.float32), r: int, i: int) -> wp.float64:
-    """(W^T C[r])_i: the average plus the +-details of the log2(size) blocks holding i."""
+    """(W^T C[r])_i: the average plus the +-details of the log2(size) blocks holding i. The loop
+    has a fixed bound (sizes up to 2^16, the uint16 columns' limit) so it unrolls and its loads
+    go out together instead of one after another."""
     size = C.shape[1]
     v = wp.float64(C[r, 0]) / wp.sqrt(wp.float64(size))
     m = int(size)
-    while m > 1:
-        idx = size // m + i // m
-        d = wp.float64(C[r, idx]) / wp.sqrt(wp.float64(m))
-        if (i % m) < m // 2:
-            v += d
-        else:
-            v -= d
+    for level in range(16):
+        if m > 1:
+            d = wp.float64(C[r, size // m + i // m]) / wp.sqrt(wp.float64(m))
+            if (i % m) < m // 2:
+                v += d
+            else:
+                v -= d
         m = m // 2
     return v
 
@@ -124,19 +134,18 @@ def _inverse_at(C: wp.array2d(dtype=wp.float32), r: int, i: int) -> wp.float64:
 @wp.func
 def _item_sum(item: int, lane: int, stride: int, item_mat: wp.array(dtype=wp.uint8),
               item_start: wp.array(dtype=wp.int64), item_len: wp.array(dtype=wp.uint16),
-              cols: wp.array(dtype=wp.uint16), vals: wp.array(dtype=wp.float32),
+              cols: wp.array(dtype=vec4us), vals: wp.array(dtype=wp.vec4f),
               X: wp.array2d(dtype=wp.float32), n_max: int, step: int) -> float:
-    """One lane's share (coefficients lane, lane + stride, ...) of item ``item``'s signed sum
-    sign_j sum_e vals[e] x_j[cols[e]] over [item_start, item_start + item_len), all of one matrix
-    j = item_mat (part of one row). History (n_max > 0): matrices H_1..H_n_max then
-    G_1..G_n_max against the wavelet-domain rings X (rows 0..n_max-1 u, n_max.. p; step s in slot
-    s mod n_max), sign - for H_k and + for G_k, x_j the ring slot of step - k. One matrix
-    (n_max = 0): x = X[0], sign +. Four coefficients a lane per iteration (independent loads in
-    flight)."""
+    """One lane's share (quads lane, lane + stride, ...) of item ``item``'s signed sum
+    sign_j sum_e vals[e] x_j[cols[e]] over its quads [item_start, item_start + item_len) (four
+    coefficients each: one 16-byte value load, one 8-byte column load, four independent gathers),
+    all of one matrix j = item_mat (part of one row). History (n_max > 0): matrices H_1..H_n_max
+    then G_1..G_n_max against the wavelet-domain rings X (rows 0..n_max-1 u, n_max.. p; step s in
+    slot s mod n_max), sign - for H_k and + for G_k, x_j the ring slot of step - k. One matrix
+    (n_max = 0): x = X[0], sign +."""
     j = int(item_mat[item])
     e = item_start[item] + wp.int64(lane)
     end = item_start[item] + wp.int64(item_len[item])
-    s = wp.int64(stride)
     x_row = int(0)
     sign = float(1.0)
     if n_max > 0:
@@ -146,23 +155,19 @@ def _item_sum(item: int, lane: int, stride: int, item_mat: wp.array(dtype=wp.uin
         else:
             x_row += n_max
     acc = float(0.0)
-    while e + wp.int64(3) * s < end:  # four independent gathers in flight a lane
-        e1 = e + s
-        e2 = e1 + s
-        e3 = e2 + s
-        acc += (vals[e] * X[x_row, int(cols[e])] + vals[e1] * X[x_row, int(cols[e1])]) + (
-            vals[e2] * X[x_row, int(cols[e2])] + vals[e3] * X[x_row, int(cols[e3])])
-        e += wp.int64(4) * s
     while e < end:
-        acc += vals[e] * X[x_row, int(cols[e])]
-        e += s
+        v = vals[e]
+        c = cols[e]
+        acc += (v[0] * X[x_row, int(c[0])] + v[1] * X[x_row, int(c[1])]) + (
+            v[2] * X[x_row, int(c[2])] + v[3] * X[x_row, int(c[3])])
+        e += wp.int64(stride)
     return sign * acc
 
 
 @wp.kernel
 def chunk_sums(item_mat: wp.array(dtype=wp.uint8), item_start: wp.array(dtype=wp.int64),
                item_len: wp.array(dtype=wp.uint16),
-               cols: wp.array(dtype=wp.uint16), vals: wp.array(dtype=wp.float32),
+               cols: wp.array(dtype=vec4us), vals: wp.array(dtype=wp.vec4f),
                X: wp.array2d(dtype=wp.float32), n_max: int, step: int, partial: wp.array(dtype=wp.float32)):
     """partial[item] = the item's signed sum (``_item_sum``): one block an item, its lanes striding
     (the CPU's form: a CPU block has one thread)."""

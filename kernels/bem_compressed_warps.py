@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from wsim.kernels.bem_compressed import _item_sum
+from wsim.kernels.bem_compressed import _item_sum, vec4us
 
 WARPS = wp.constant(4)  # items a block (block_dim 32 WARPS)
 
@@ -16,7 +16,7 @@ WARPS = wp.constant(4)  # items a block (block_dim 32 WARPS)
 @wp.kernel
 def chunk_sums_warps(item_mat: wp.array(dtype=wp.uint8), item_start: wp.array(dtype=wp.int64),
                      item_len: wp.array(dtype=wp.uint16),
-                     cols: wp.array(dtype=wp.uint16), vals: wp.array(dtype=wp.float32),
+                     cols: wp.array(dtype=vec4us), vals: wp.array(dtype=wp.vec4f),
                      X: wp.array2d(dtype=wp.float32), n_max: int, step: int, partial: wp.array(dtype=wp.float32)):
     """partial[item] = the item's signed sum (``bem_compressed._item_sum``) for WARPS items a block,
     warp w of block b taking item b WARPS + w: a block of one warp caps an SM at half its threads

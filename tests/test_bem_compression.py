@@ -181,12 +181,12 @@ def test_device_kernels_equal_the_host_compressed_history(cube) -> None:
 
     bounds, cols, vals = pack_rows([*ch.H, *ch.G])
     chunk = 64
-    parts = (bounds, cols, vals, *work_items(bounds, chunk))
-    assert np.max(parts[5]) <= chunk  # long parts are cut: more items than (row, matrix) parts
+    parts = (bounds, cols.reshape(-1, 4), vals.reshape(-1, 4), *work_items(bounds, chunk))
+    assert np.max(parts[5]) <= chunk // 4  # long parts are cut (lengths in quads): more items than parts
     assert len(parts[3]) > np.count_nonzero(np.diff(bounds, axis=1))
     assert np.all(np.diff(parts[3].astype(int)) >= 0)  # matrix by matrix
     assert np.array_equal(np.sort(parts[7]), np.arange(len(parts[3])))  # every item in one row's list
-    types = (wp.int64, wp.uint16, wp.float32, wp.uint8, wp.int64, wp.uint16, wp.int64, wp.int32)
+    types = (wp.int64, kc.vec4us, wp.vec4f, wp.uint8, wp.int64, wp.uint16, wp.int64, wp.int32)
     b, c, v, item_mat, item_start, item_len, row_items, row_list = (
         wp.array(a, dtype=t, device="cpu") for a, t in zip(parts, types))
     partial = wp.zeros(len(item_mat), dtype=wp.float32, device="cpu")

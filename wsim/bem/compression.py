@@ -461,41 +461,55 @@ def compress_history(ops, ratio: float | None = None, error: float | None = None
                              spec=f"error={error:g}" if error is not None else f"ratio={ratio:g}")
 
 
+QUAD = 4  # coefficients a lane loads at once: 16-byte values, 8-byte columns
+
+
 def pack_rows(matrices: Sequence[CompressedMatrix]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The kept coefficients of several matrices of one size, laid out row by row for the device
-    (``wsim.kernels.bem_compressed.history_spmv``): (bounds (size, len + 1) int64: where matrix j's
-    part of row i starts, columns uint16, values float32). 6 bytes a coefficient."""
+    (``wsim.kernels.bem_compressed``): (bounds (size, len + 1) int64: where matrix j's part of
+    row i starts, columns uint16, values float32). Each part is padded with zeros (value 0, the
+    part's last column) to a multiple of QUAD coefficients, so that a lane loads four at once:
+    6 bytes a coefficient, the padding ~0.5 % more at CR 32."""
     size = matrices[0].size
     if size > 65536:
         raise InvalidParameter(f"pack_rows: padded size {size} exceeds the uint16 columns (3N <= 65536)")
     counts = np.stack([np.diff(m.C.indptr) for m in matrices], axis=1)  # (size, J)
-    starts = np.concatenate([[0], np.cumsum(counts.ravel())])
+    padded = -(-counts // QUAD) * QUAD
+    starts = np.concatenate([[0], np.cumsum(padded.ravel())])
     J = len(matrices)
     bounds = np.empty((size, J + 1), dtype=np.int64)
     bounds[:, :J] = starts[:-1].reshape(size, J)
     bounds[:, J] = starts[J::J]
-    cols = np.empty(int(starts[-1]), dtype=np.uint16)
-    vals = np.empty(int(starts[-1]), dtype=np.float32)
+    cols = np.zeros(int(starts[-1]), dtype=np.uint16)
+    vals = np.zeros(int(starts[-1]), dtype=np.float32)
     for j, m in enumerate(matrices):
         c = m.C
-        dest = np.repeat(bounds[:, j] - c.indptr[:-1], np.diff(c.indptr)) + np.arange(c.nnz)
+        n_row = np.diff(c.indptr)
+        dest = np.repeat(bounds[:, j] - c.indptr[:-1], n_row) + np.arange(c.nnz)
         cols[dest] = c.indices
         vals[dest] = c.data
+        pad = padded[:, j] - n_row  # the padding repeats the part's last column (a cached gather)
+        if pad.any() and c.nnz:
+            rows = np.repeat(np.arange(size), pad)
+            fill = np.repeat(bounds[:, j] + n_row, pad) + (np.arange(pad.sum()) - np.repeat(np.cumsum(pad) - pad, pad))
+            last = np.where(n_row > 0, c.indices[np.maximum(c.indptr[1:] - 1, 0)], 0)
+            cols[fill] = last[rows]
     return bounds, cols, vals
 
 
 def work_items(bounds: np.ndarray, chunk: int) -> tuple[np.ndarray, ...]:
     """The rows of a ``pack_rows`` layout cut into work items, each part of one matrix's part of one
-    row and at most ``chunk`` (<= 65535) coefficients long
+    row and at most ``chunk`` (a multiple of QUAD) coefficients long
     (``wsim.kernels.bem_compressed.chunk_sums``), ordered matrix by matrix (all of H_1's items, then
     H_2's, ...): the GPU then works on one or two matrices at a time, and the vector each gathers
     from stays in its SMs' L1 cache. Returns (item matrix uint8, item start int64, item length
-    uint16, row_items (size + 1) int64, row_list int32): the items of row r are
-    row_list[row_items[r] .. row_items[r + 1]], in matrix order. 15 bytes an item: at CR 32 on the
-    2906-node cube about 1 % of the coefficients' bytes."""
+    uint16 - both in quads of QUAD coefficients -, row_items (size + 1) int64, row_list int32): the
+    items of row r are row_list[row_items[r] .. row_items[r + 1]], in matrix order. 15 bytes an
+    item: at CR 32 on the 2906-node cube about 1 % of the coefficients' bytes."""
     size, J = bounds.shape[0], bounds.shape[1] - 1
-    if J > 255 or chunk > 65535:
-        raise InvalidParameter(f"work_items: {J} matrices (<= 255) and chunks of {chunk} (<= 65535)")
+    if J > 255 or chunk > 65535 * QUAD or chunk % QUAD or np.any(bounds % QUAD):
+        raise InvalidParameter(f"work_items: {J} matrices (<= 255), chunks of {chunk} (a multiple of {QUAD}) "
+                               f"and a pack_rows layout (parts padded to {QUAD}) are needed")
     start, end = bounds[:, :J].T.ravel(), bounds[:, 1:].T.ravel()  # segment (j, row), matrix-major
     per_seg = -(-(end - start) // chunk)
     seg = np.repeat(np.arange(size * J), per_seg)
@@ -506,4 +520,5 @@ def work_items(bounds: np.ndarray, chunk: int) -> tuple[np.ndarray, ...]:
     row = seg % size
     row_list = np.argsort(row, kind="stable").astype(np.int32)  # by row, matrix order kept within a row
     row_items = np.concatenate([[0], np.cumsum(np.bincount(row, minlength=size))]).astype(np.int64)
-    return (seg // size).astype(np.uint8), item_start.astype(np.int64), item_len.astype(np.uint16), row_items, row_list
+    return ((seg // size).astype(np.uint8), (item_start // QUAD).astype(np.int64), (item_len // QUAD).astype(np.uint16),
+            row_items, row_list)

@@ -259,8 +259,8 @@ def _compressed_step_operators(ops: BemOperators, device: wp.Device, backend: st
         def arrays(mats) -> tuple[wp.array, ...]:
             """(cols, vals, item_mat, item_start, item_len, row_items, row_list) on the device."""
             b, c, v = pack_rows(mats)
-            parts = (c, v, *work_items(b, kc.CHUNK))
-            types = (wp.uint16, wp.float32, wp.uint8, wp.int64, wp.uint16, wp.int64, wp.int32)
+            parts = (c.reshape(-1, 4), v.reshape(-1, 4), *work_items(b, kc.CHUNK))  # quads of four
+            types = (kc.vec4us, wp.vec4f, wp.uint8, wp.int64, wp.uint16, wp.int64, wp.int32)
             return tuple(wp.array(a, dtype=t, device=device) for a, t in zip(parts, types))
 
         packed = {"perm": wp.array(ch.perm.astype(np.int32), dtype=wp.int32, device=device), "size": ch.size,
@@ -314,17 +314,19 @@ def pass_buffers(rows: int, size: int, device: wp.Device) -> list[wp.array]:
 
 def haar_rows(sources: list[tuple[wp.array, int, int]], perm: wp.array, size: int, sums: list[wp.array],
               out: wp.array, row0: int = 0, row_stride: int = 1) -> None:
-    """W P of rows: ``sources`` lists (float32 array (rows, >= len(perm)), first row, rows); those
-    rows, reordered by ``perm`` (new -> old) and zero padded to ``size`` (a power of two), go in
-    order to out[row0 + r row_stride] (float32): one ``haar_first_pass`` launch per source, then
-    ``haar_pass`` launches on all of them (log2(size) / 4 in all); ``sums`` from ``pass_buffers``."""
+    """W P of rows: ``sources`` lists one or two (float32 array (rows, >= len(perm)), first row,
+    rows); those rows, reordered by ``perm`` (new -> old) and zero padded to ``size`` (a power of
+    two), go in order to out[row0 + r row_stride] (float32): one ``haar_first_pass`` launch for
+    both sources, then ``haar_pass`` launches (log2(size) / 4 in all); ``sums`` from
+    ``pass_buffers``."""
+    if not 1 <= len(sources) <= 2:
+        raise ValueError(f"haar_rows: one or two sources, got {len(sources)}")
+    (src_a, first_a, rows_a), (src_b, first_b, rows_b) = sources[0], sources[-1]
+    total = rows_a + (rows_b if len(sources) == 2 else 0)
     group = min(kc.PASS_GROUP, size)
-    total = 0
-    for src, first, rows in sources:
-        wp.launch(kc.haar_first_pass, dim=(rows, size // group), device=src.device,
-                  inputs=[src, first, perm, group, size, row0 + total * row_stride, row_stride, total],
-                  outputs=[out, sums[0]])
-        total += rows
+    wp.launch(kc.haar_first_pass, dim=(total, size // group), device=out.device,
+              inputs=[src_a, first_a, rows_a, src_b, first_b, perm, group, size, row0, row_stride],
+              outputs=[out, sums[0][:total]])
     count, k = size // group, 0
     while count > 1:
         group = min(kc.PASS_GROUP, count)
