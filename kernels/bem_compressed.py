@@ -141,12 +141,12 @@ def _item_sum(item: int, lane: int, stride: int, item_mat: wp.array(dtype=wp.uin
     coefficients each: one 16-byte value load, one 8-byte column load, four independent gathers),
     all of one matrix j = item_mat (part of one row). History (n_max > 0): matrices H_1..H_n_max
     then G_1..G_n_max against the wavelet-domain rings X (rows 0..n_max-1 u, n_max.. p; step s in
-    slot s mod n_max), sign - for H_k and + for G_k, x_j the ring slot of step - k. One matrix
-    (n_max = 0): x = X[0], sign +."""
+    slot s mod n_max), sign - for H_k and + for G_k, x_j the ring slot of step - k. A solve
+    (n_max = 0): matrix j against X[j], sign +."""
     j = int(item_mat[item])
     e = item_start[item] + wp.int64(lane)
     end = item_start[item] + wp.int64(item_len[item])
-    x_row = int(0)
+    x_row = j
     sign = float(1.0)
     if n_max > 0:
         x_row = (step - (j % n_max + 1)) % n_max

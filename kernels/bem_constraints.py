@@ -36,6 +36,7 @@ def w_block(W: wp.array2d(dtype=Any), a: int, b: int) -> wp.mat33d:
 @wp.kernel
 def response_blocks(
     W: wp.array2d(dtype=Any),
+    row_of: wp.array(dtype=wp.int32),
     ids: wp.array(dtype=wp.vec3i),
     weights: wp.array(dtype=wp.vec3d),
     Rk: wp.mat33d,
@@ -57,7 +58,9 @@ def response_blocks(
     (the weights of a point sum to 1). With the frame update lin_a_i = dt^2 I and
     lin_c_i = -dt^2 [r_i]x (module docstring, r_i the point's lever arm); without it (a fixed frame,
     Eq. 9 with a = alpha = 0) they remove the D_0 A + Q_0 C part of G': lin_a_i = -R E_D,i R^T,
-    lin_c_i = -R E_Q,i R^T with E = [H_0^-1 D_0, H_0^-1 Q_0] at the point. Launch with dim = (m, m)."""
+    lin_c_i = -R E_Q,i R^T with E = [H_0^-1 D_0, H_0^-1 Q_0] at the point. W(n, c) is read at
+    rows 3 row_of[n].. of ``W`` (all rows of W, or only those of the points' nodes). Launch with
+    dim = (m, m)."""
     i, j = wp.tid()
     wi = weights[i]
     wj = weights[j]
@@ -71,7 +74,7 @@ def response_blocks(
             Csum += wj[b] * C_over_a[col]
             for a in range(3):
                 if wi[a] != wp.float64(0.0):
-                    Wsum += (wi[a] * wj[b] * inv_area[col]) * w_block(W, ni[a], col)
+                    Wsum += (wi[a] * wj[b] * inv_area[col]) * w_block(W, int(row_of[ni[a]]), col)
     blk = Rk * Wsum * wp.transpose(R1) + lin_a[i] * inv_mass + lin_c[i] * (R1 * Csum * wp.transpose(R1))
     for p in range(3):
         for q in range(3):
@@ -82,15 +85,17 @@ def response_blocks(
 @wp.kernel
 def point_rows(
     W: wp.array2d(dtype=Any),
+    row_of: wp.array(dtype=wp.int32),
     rows: wp.array(dtype=int),
     nodes: wp.array(dtype=int),
     p: wp.array(dtype=wp.vec3d),
     out: wp.array(dtype=wp.vec3d),
 ):
     """out_i = sum_j W[node rows_i, node nodes_j] p_j: the displacement of the point tractions p at
-    the nodes ``rows`` only (the constraint points), not the whole surface."""
+    the nodes ``rows`` only (the constraint points), not the whole surface; node n's rows of W are
+    3 row_of[n].. of ``W``."""
     i = wp.tid()
-    a = 3 * rows[i]
+    a = 3 * int(row_of[rows[i]])
     s = wp.vec3d()
     for j in range(nodes.shape[0]):
         b = 3 * nodes[j]

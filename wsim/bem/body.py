@@ -123,8 +123,8 @@ class BemBody(VertexImpulses, Body):
         n_max: history length override.
         operators: a prebuilt :class:`~wsim.bem.BemOperators` for this mesh (skips the build).
         matvec: "auto" (Warp on CUDA, BLAS on CPU), "warp" or "blas" (CPU only).
-        compression: keep 1 / CR of the Haar coefficients of H_k, G_k (k >= 1) and H_0^-1 (the
-            paper's compression ratio CR >= 1; ``wsim.bem.compression``).
+        compression: keep 1 / CR of the Haar coefficients of H_k, G_k (k >= 1), H_0^-1 and
+            H_0^-1 G' (the paper's compression ratio CR >= 1; ``wsim.bem.compression``).
         compression_error: instead, per matrix the fewest coefficients whose relative matvec error
             stays below this on smooth surface fields (``compression.choose_keep``).
         divergence_limit: |u| [m] beyond which the step stops with ``SimulationDiverged``

@@ -189,6 +189,19 @@ class CompressedMatrix:
         """A x for x of shape (n,) or (n, k)."""
         return from_wavelet(self.C @ to_wavelet(np.asarray(x, dtype=np.float64), self.perm, self.size), self.perm)
 
+    def rows(self, rs: np.ndarray) -> np.ndarray:
+        """Rows ``rs`` of A (the reconstruction), (len(rs), n) in the original column order: each
+        row is w_r^T C W P, w_r = W P e_r with log2(size) + 1 entries (``haar_basis``), so
+        log2(size) + 1 sparse rows of C combined and one inverse transform."""
+        rs = np.asarray(rs, dtype=np.int64)
+        inv = np.empty(self.n, dtype=np.int64)
+        inv[self.perm] = np.arange(self.n)
+        basis = [haar_basis(int(inv[r]), self.size) for r in rs]
+        Psi = sp.csr_matrix((np.concatenate([v for _, v in basis]) if basis else np.zeros(0),
+                             np.concatenate([i for i, _ in basis]) if basis else np.zeros(0, dtype=np.int64),
+                             np.arange(len(rs) + 1) * (int(np.log2(self.size)) + 1)), shape=(len(rs), self.size))
+        return from_wavelet(np.asarray((Psi @ self.C).todense()).T, self.perm).T
+
     def row(self, r: int) -> np.ndarray:
         """Row r of A (the reconstruction), in the original column order."""
         inv = np.empty(self.n, dtype=np.int64)
@@ -382,16 +395,17 @@ def smooth_fields(nodes: np.ndarray, k: int, seed: int = 0) -> np.ndarray:
 
 @dataclass(frozen=True)
 class CompressedHistory:
-    """H_k, G_k (k = 1..n_max) and H_0^-1 of an operator set, compressed with one permutation
-    (v+c), and the products of a step in the wavelet domain: the history h = sum_k G_k p_(n-k) -
-    H_k u_(n-k) transforms the ring's vectors once (all slots in one pass), sums the sparse
-    products and transforms back once. H_0^-1 G' stays dense (the constraint solver reads its
-    entries). ``spec``: how it was made (ratio or error)."""
+    """H_k, G_k (k = 1..n_max), H_0^-1 and H_0^-1 G' of an operator set, compressed with one
+    permutation (v+c), and the products of a step in the wavelet domain: the history h = sum_k G_k
+    p_(n-k) - H_k u_(n-k) transforms the ring's vectors once (all slots in one pass), sums the
+    sparse products and transforms back once. The constraint solver reads rows of H_0^-1 G'
+    (``CompressedMatrix.rows``). ``spec``: how it was made (ratio or error)."""
 
     perm: np.ndarray
     H: tuple[CompressedMatrix, ...]
     G: tuple[CompressedMatrix, ...]
     H0_inv: CompressedMatrix
+    H0_inv_Gp: CompressedMatrix
     spec: str
 
     @property
@@ -404,7 +418,7 @@ class CompressedHistory:
 
     @property
     def matrices(self) -> tuple[CompressedMatrix, ...]:
-        return (*self.H, *self.G, self.H0_inv)
+        return (*self.H, *self.G, self.H0_inv, self.H0_inv_Gp)
 
     @property
     def nbytes(self) -> int:
@@ -432,7 +446,7 @@ class CompressedHistory:
 
 def compress_history(ops, ratio: float | None = None, error: float | None = None,
                      vectors: np.ndarray | None = None, device=None) -> CompressedHistory:
-    """Compress ``ops``' (``BemOperators``) H_k, G_k (k >= 1) and H_0^-1 with the v+c ordering:
+    """Compress ``ops``' (``BemOperators``) H_k, G_k (k >= 1), H_0^-1 and H_0^-1 G' with the v+c ordering:
     at one compression ``ratio`` (the paper's CR), or each with the fewest coefficients whose
     relative matvec error stays below ``error`` on ``vectors`` (default: 32 ``smooth_fields``).
     The transforms and choices run on the host (``device`` None) or on a Warp device (one
@@ -458,6 +472,7 @@ def compress_history(ops, ratio: float | None = None, error: float | None = None
     n_max = ops.n_max
     return CompressedHistory(perm=perm, H=tuple(one(ops.H[k]) for k in range(1, n_max + 1)),
                              G=tuple(one(ops.G[k]) for k in range(1, n_max + 1)), H0_inv=one(ops.H0_inv),
+                             H0_inv_Gp=one(ops.H0_inv_Gp),
                              spec=f"error={error:g}" if error is not None else f"ratio={ratio:g}")
 
 

@@ -1,8 +1,9 @@
 """BEM side of the point constraints: the linear response of node positions to point forces
 (Eqs. 13-14, ``wsim.kernels.bem_constraints``) and the tractions that apply them.
 
-``PointResponse`` holds what the response needs per node besides W = H_0^-1 G' (already on the
-device in ``StepOperators``): 1 / a_j and C_j / a_j. It is immutable and shared like the operators.
+``PointResponse`` holds what the response needs per node besides W = H_0^-1 G' (on the device in
+``StepOperators``, or compressed: then ``response_rows`` rebuilds the rows the constraint points
+need): 1 / a_j and C_j / a_j. It is immutable and shared like the operators.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from wsim.bem.operators import PRECISIONS
 from wsim.bem.stepper import StepOperators
 from wsim.rigid import cross_matrix
 from wsim.kernels import bem_constraints as kb
@@ -51,8 +53,9 @@ def response_matrix(so: StepOperators, pr: PointResponse, points, Rk: np.ndarray
     def mats(a: np.ndarray) -> wp.array:
         return wp.array(np.ascontiguousarray(a, dtype=np.float64), dtype=wp.mat33d, device=d)
 
+    W, row_of = response_rows(so, points.ids.ravel())
     wp.launch(kb.response_blocks, dim=(m, m), device=d,
-              inputs=[so.H0_inv_Gp, wp.array(points.ids.astype(np.int32), dtype=wp.vec3i, device=d),
+              inputs=[W, row_of, wp.array(points.ids.astype(np.int32), dtype=wp.vec3i, device=d),
                       wp.array(points.w, dtype=wp.vec3d, device=d),
                       wp.mat33d(*Rk.ravel()), wp.mat33d(*R1.ravel()), pr.inv_area, pr.C_over_a, mats(lin_a),
                       mats(lin_c), wp.float64(1.0 / so.operators.mass), K, Kt])
@@ -70,8 +73,28 @@ def frame_terms(so: StepOperators, points, lever: np.ndarray, R: np.ndarray, dt:
     return -R @ E[:, :, :3] @ R.T, -R @ E[:, :, 3:] @ R.T
 
 
+def response_rows(so: StepOperators, nodes: np.ndarray) -> tuple[wp.array, wp.array]:
+    """(W, row_of): rows of W = H_0^-1 G' for the kernels, node n's three rows at 3 row_of[n]..
+    The dense W itself with the identity map, or, for compressed operators, the rows of ``nodes``
+    alone rebuilt from the kept coefficients (``CompressedMatrix.rows``: log2(size) + 1 sparse
+    rows and one inverse transform each; other nodes map to -1)."""
+    if so.compressed is None:
+        return so.H0_inv_Gp, so.node_rows
+    nodes = np.unique(np.asarray(nodes, dtype=np.int64))
+    rows = (3 * nodes[:, None] + np.arange(3)).ravel()
+    row_of = np.full(so.operators.n_nodes, -1, dtype=np.int32)
+    row_of[nodes] = np.arange(len(nodes), dtype=np.int32)
+    W = so.compressed.H0_inv_Gp.rows(rows).astype(PRECISIONS[so.operators.precision])
+    return (wp.array(W, dtype=so.dtype, device=so.device),
+            wp.array(row_of, dtype=wp.int32, device=so.device))
+
+
 def add_point_displacement(so: StepOperators, nodes: np.ndarray, p: np.ndarray, u: np.ndarray) -> np.ndarray:
     """u + W[:, nodes] p for the (m, 3) frame-axes tractions p on ``nodes`` (u: (3N,) host)."""
+    if so.compressed is not None:  # every row: the compressed product with the traction field
+        p_full = np.zeros((so.operators.n_nodes, 3))
+        np.add.at(p_full, nodes, p)
+        return u + so.compressed.H0_inv_Gp.matvec(p_full.reshape(-1))
     every = np.arange(so.operators.n_nodes)
     return u + point_displacement(so, every, nodes, p).reshape(-1)
 
@@ -80,8 +103,9 @@ def point_displacement(so: StepOperators, rows: np.ndarray, nodes: np.ndarray, p
     """(len(rows), 3) displacement W[rows, nodes] p of the (m, 3) frame-axes tractions p on ``nodes``."""
     d = so.device
     out = wp.empty(len(rows), dtype=wp.vec3d, device=d)
+    W, row_of = response_rows(so, rows)
     wp.launch(kb.point_rows, dim=len(rows), device=d,
-              inputs=[so.H0_inv_Gp, wp.array(rows.astype(np.int32), dtype=wp.int32, device=d),
+              inputs=[W, row_of, wp.array(rows.astype(np.int32), dtype=wp.int32, device=d),
                       wp.array(nodes.astype(np.int32), dtype=wp.int32, device=d),
                       wp.array(np.ascontiguousarray(p), dtype=wp.vec3d, device=d), out])
     return out.numpy()

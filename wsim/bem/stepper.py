@@ -16,11 +16,12 @@ Two backends compute the passes (``history`` and ``solve``):
 numpy's BLAS uses every core (``tools/bench_bem_step.py`` measures both: 7x on 2 cores).
 
 With a ``CompressedHistory`` (``wsim.bem.compression``; built on the GPU or the host and kept in
-the operator cache, ``compressed_history``) the history and H_0^-1 h products run on the kept
-Haar coefficients instead (BLAS backend: scipy on the host; Warp backend:
+the operator cache, ``compressed_history``) the history and the H_0^-1 h + H_0^-1 G' p products
+run on the kept Haar coefficients instead (BLAS backend: scipy on the host; Warp backend:
 ``wsim.kernels.bem_compressed``, with the rings kept in the wavelet domain in the body's
-``CompressedScratch``: a step transforms its two new vectors, ``ring_written``), and H_k, G_k,
-H_0^-1 are not uploaded; H_0^-1 G' stays dense (the constraint solver reads its entries).
+``CompressedScratch``: a step transforms its two new vectors, ``ring_written``), and no dense
+matrix is uploaded; the constraint solver reads the rows of H_0^-1 G' it needs
+(``wsim.bem.constraints.response_rows``).
 """
 
 from __future__ import annotations
@@ -71,6 +72,12 @@ class StepOperators:
         """Error-correction pieces, built on first use (bodies without the correction never pay)."""
         return Correction.from_operators(self.operators, self.E)
 
+    @cached_property
+    def node_rows(self) -> wp.array:
+        """Node -> its row block in H0_inv_Gp (the identity: all rows stored; the constraint
+        kernels take a map because a compressed set gives them only the rows they need)."""
+        return wp.array(np.arange(self.operators.n_nodes, dtype=np.int32), dtype=wp.int32, device=self.device)
+
     @property
     def n_max(self) -> int:
         return self.operators.n_max
@@ -81,11 +88,13 @@ class StepOperators:
         return 3 * self.operators.n_nodes
 
     def _stored_bytes(self, part: str) -> int:
-        """Bytes of the compressed ``part`` ("history" or "H0_inv") as stored for the passes: the
-        packed device arrays (Warp) or the host CSR matrices (BLAS)."""
+        """Bytes of the compressed ``part`` ("history" or "solve": H_0^-1 and H_0^-1 G') as stored
+        for the passes: the packed device arrays (Warp) or the host CSR matrices (BLAS)."""
         if self.packed is not None:
-            return int(sum(a.capacity for a in self.packed[part]))
-        mats = (*self.compressed.H, *self.compressed.G) if part == "history" else (self.compressed.H0_inv,)
+            extra = sum(a.capacity for a in self.packed["solve_h"][1:]) if part == "solve" else 0
+            return int(sum(a.capacity for a in self.packed[part]) + extra)
+        c = self.compressed
+        mats = (*c.H, *c.G) if part == "history" else (c.H0_inv, c.H0_inv_Gp)
         return int(sum(m.nbytes for m in mats))
 
     @property
@@ -104,8 +113,9 @@ class StepOperators:
     @property
     def matrix_bytes(self) -> int:
         """Bytes a step with tractions reads: 2 n_max + 2 dense (or compressed) matrices and the small blocks."""
-        h0 = self._stored_bytes("H0_inv") if self.compressed is not None else self.H0_inv.capacity
-        return self.history_bytes + int(h0 + self.H0_inv_Gp.capacity)
+        if self.compressed is not None:
+            return self.history_bytes + self._stored_bytes("solve")
+        return self.history_bytes + int(self.H0_inv.capacity + self.H0_inv_Gp.capacity)
 
     def vectors(self, rows: int | None = None) -> wp.array:
         """Zeroed storage for ``rows`` vectors (or one) of length ``pitch`` on the device."""
@@ -176,7 +186,7 @@ def step_operators(ops: BemOperators, device: wp.Device, backend: str,
 
 
 #: bump when the stored compressed arrays or their meaning change
-COMPRESSED_FORMAT = 1
+COMPRESSED_FORMAT = 2  # 2: H_0^-1 G' compressed too
 
 
 def _compressed_arrays(ch: Any, dtype: Any) -> dict[str, np.ndarray]:
@@ -192,7 +202,7 @@ def _compressed_arrays(ch: Any, dtype: Any) -> dict[str, np.ndarray]:
 
 
 def _compressed_names(n_max: int) -> list[str]:
-    return [*(f"H{k}" for k in range(1, n_max + 1)), *(f"G{k}" for k in range(1, n_max + 1)), "H0_inv"]
+    return [*(f"H{k}" for k in range(1, n_max + 1)), *(f"G{k}" for k in range(1, n_max + 1)), "H0_inv", "H0_inv_Gp"]
 
 
 def _compressed_from_arrays(a: dict[str, np.ndarray], n: int, n_max: int) -> Any:
@@ -208,7 +218,8 @@ def _compressed_from_arrays(a: dict[str, np.ndarray], n: int, n_max: int) -> Any
                           shape=(size, size))
         norm, dropped = a[f"{name}_norms"].tolist()
         mats.append(CompressedMatrix(n=n, perm=perm, C=C, norm=norm, dropped=dropped))
-    return CompressedHistory(perm=perm, H=tuple(mats[:n_max]), G=tuple(mats[n_max: 2 * n_max]), H0_inv=mats[-1],
+    return CompressedHistory(perm=perm, H=tuple(mats[:n_max]), G=tuple(mats[n_max: 2 * n_max]), H0_inv=mats[-2],
+                             H0_inv_Gp=mats[-1],
                              spec=bytes(a["spec"]).decode())
 
 
@@ -240,8 +251,10 @@ def compressed_history(ops: BemOperators, compression: tuple[str, float], device
 
 def _compressed_step_operators(ops: BemOperators, device: wp.Device, backend: str, compression: tuple[str, float],
                                key: tuple, cache: Any) -> StepOperators:
-    """H_k, G_k, H_0^-1 compressed (``CompressedHistory``): on the host for the BLAS backend, packed
-    for ``wsim.kernels.bem_compressed`` for the Warp backend (float32 operators); H_0^-1 G' dense."""
+    """H_k, G_k, H_0^-1, H_0^-1 G' compressed (``CompressedHistory``): on the host for the BLAS
+    backend, packed for ``wsim.kernels.bem_compressed`` for the Warp backend (float32 operators):
+    "history" (the 2 n_max history matrices) and "solve" (H_0^-1 then H_0^-1 G', against h and p;
+    ``solve_h`` the first matrix's items alone, for a step without tractions)."""
     from wsim.bem.compression import pack_rows, work_items
 
     if backend == "warp" and ops.precision != "float32":
@@ -249,32 +262,29 @@ def _compressed_step_operators(ops: BemOperators, device: wp.Device, backend: st
     ch = compressed_history(ops, compression, device, cache)
     dtype = PRECISIONS[ops.precision]
     wdt = wp.float32 if dtype == np.float32 else wp.float64
-    n3 = 3 * ops.n_nodes
+    pitch = -(-3 * ops.n_nodes // 4) * 4 if backend == "warp" else 3 * ops.n_nodes
     packed = None
     if backend == "warp":
-        pitch = -(-n3 // 4) * 4
-        H0_inv_Gp = _upload_padded(ops.H0_inv_Gp, dtype, wdt, pitch, device)
-        vec4 = {"H0_inv_Gp": vec4_view(H0_inv_Gp)}
-
-        def arrays(mats) -> tuple[wp.array, ...]:
-            """(cols, vals, item_mat, item_start, item_len, row_items, row_list) on the device."""
-            b, c, v = pack_rows(mats)
-            parts = (c.reshape(-1, 4), v.reshape(-1, 4), *work_items(b, kc.CHUNK))  # quads of four
-            types = (kc.vec4us, wp.vec4f, wp.uint8, wp.int64, wp.uint16, wp.int64, wp.int32)
+        def dev(parts, types) -> tuple[wp.array, ...]:
             return tuple(wp.array(a, dtype=t, device=device) for a, t in zip(parts, types))
 
+        def arrays(mats) -> tuple[tuple[wp.array, ...], np.ndarray]:
+            """(cols, vals, item_mat, item_start, item_len, row_items, row_list) on the device, and the bounds."""
+            b, c, v = pack_rows(mats)
+            parts = (c.reshape(-1, 4), v.reshape(-1, 4), *work_items(b, kc.CHUNK))  # quads of four
+            return dev(parts, (kc.vec4us, wp.vec4f, wp.uint8, wp.int64, wp.uint16, wp.int64, wp.int32)), b
+
+        solve, b = arrays([ch.H0_inv, ch.H0_inv_Gp])
+        first = work_items(b[:, :2], kc.CHUNK)  # H_0^-1's items are the first ones (matrix by matrix)
         packed = {"perm": wp.array(ch.perm.astype(np.int32), dtype=wp.int32, device=device), "size": ch.size,
-                  "history": arrays([*ch.H, *ch.G]), "H0_inv": arrays([ch.H0_inv])}
-    else:
-        pitch = n3
-        H0_inv_Gp = wp.array(np.ascontiguousarray(ops.H0_inv_Gp, dtype=dtype), dtype=wdt, device=device, copy=False)
-        vec4 = {}
+                  "history": arrays([*ch.H, *ch.G])[0], "solve": solve,
+                  "solve_h": (len(first[0]), *dev(first[3:], (wp.int64, wp.int32)))}
+    empty = wp.zeros((0, pitch), dtype=wdt, device=device)
     out = StepOperators(
-        operators=ops, device=device, backend=backend, dtype=wdt, pitch=pitch,
-        H=wp.zeros((0, pitch), dtype=wdt, device=device), G=wp.zeros((0, pitch), dtype=wdt, device=device),
+        operators=ops, device=device, backend=backend, dtype=wdt, pitch=pitch, H=empty, G=empty,
         DQ=wp.array(np.concatenate([ops.D[1:], ops.Q[1:]], axis=2).astype(dtype), dtype=wdt, device=device),
-        H0_inv=wp.zeros((0, pitch), dtype=wdt, device=device), H0_inv_Gp=H0_inv_Gp,
-        E=ops.solve_H0(np.hstack([ops.D[0], ops.Q[0]])), vec4=vec4, compressed=ch, packed=packed)
+        H0_inv=empty, H0_inv_Gp=empty,
+        E=ops.solve_H0(np.hstack([ops.D[0], ops.Q[0]])), vec4={}, compressed=ch, packed=packed)
     _SHARED[key] = out
     return out
 
@@ -290,9 +300,9 @@ class CompressedScratch:
         self.sums = pass_buffers(2 * n_max, size, d)
         self.hat = wp.zeros((2 * n_max, size), dtype=wp.float32, device=d)
         self.stale = True
-        self.one_hat = wp.zeros((1, size), dtype=wp.float32, device=d)
+        self.one_hat = wp.zeros((2, size), dtype=wp.float32, device=d)  # h and p of a solve
         self.y_hat = wp.zeros((1, size), dtype=wp.float32, device=d)
-        items = max(len(so.packed["history"][2]), len(so.packed["H0_inv"][2]))
+        items = max(len(so.packed["history"][2]), len(so.packed["solve"][2]))
         warps = int(kw.WARPS)
         self.partial = wp.zeros(-(-items // warps) * warps, dtype=wp.float32, device=d)  # whole blocks of items
 
@@ -348,16 +358,20 @@ def ring_written(so: StepOperators, U: wp.array, P: wp.array, slot: int, scratch
     _transform(so, [(_scalar(U, so), slot, 1), (_scalar(P, so), slot, 1)], scratch, scratch.hat, slot, so.n_max)
 
 
-def _sparse_sum(so: StepOperators, part: str, X: wp.array, n_max: int, step: int, sc: CompressedScratch) -> None:
-    """sc.y_hat = the packed ``part``'s product with X (``chunk_sums`` then ``row_sums``)."""
+def _sparse_sum(so: StepOperators, part: str, X: wp.array, n_max: int, step: int, sc: CompressedScratch,
+                items: int | None = None, rows: tuple[wp.array, wp.array] | None = None) -> None:
+    """sc.y_hat = the packed ``part``'s product with X (``chunk_sums`` then ``row_sums``); ``items``
+    and ``rows`` (row_items, row_list) restrict it to the first matrices' items."""
     cols, vals, item_mat, item_start, item_len, row_items, row_list = so.packed[part]
+    n_items = len(item_mat) if items is None else items
+    row_items, row_list = (row_items, row_list) if rows is None else rows
     args = [item_mat, item_start, item_len, cols, vals, X, n_max, step, sc.partial]
     if so.device.is_cuda:
         warps = int(kw.WARPS)
-        wp.launch_tiled(kw.chunk_sums_warps, dim=-(-len(item_mat) // warps), block_dim=32 * warps,
+        wp.launch_tiled(kw.chunk_sums_warps, dim=-(-n_items // warps), block_dim=32 * warps,
                         device=so.device, inputs=args)
     else:
-        wp.launch_tiled(kc.chunk_sums, dim=len(item_mat), block_dim=int(kc.SPMV_BLOCK), device=so.device, inputs=args)
+        wp.launch_tiled(kc.chunk_sums, dim=n_items, block_dim=int(kc.SPMV_BLOCK), device=so.device, inputs=args)
     wp.launch_tiled(kc.row_sums, dim=so.packed["size"], block_dim=int(kc.SPMV_BLOCK), device=so.device,
                     inputs=[row_items, row_list, sc.partial, sc.y_hat])
 
@@ -374,15 +388,20 @@ def _compressed_history(so: StepOperators, U: wp.array, P: wp.array, B: wp.array
 
 
 def _compressed_solve(so: StepOperators, p: wp.array | None, h: wp.array, u: wp.array, sc: CompressedScratch) -> None:
-    if p is not None:  # u = H_0^-1 G' p (dense: the constraint solver reads it too)
-        wp.launch_tiled(ks.solve_matvec, dim=so.size, block_dim=int(ks.MATVEC_BLOCK), device=so.device,
-                        inputs=[so.vec4["H0_inv_Gp"], so.vec4["H0_inv_Gp"], p, p, 0, u])
+    """u = H_0^-1 h + H_0^-1 G' p on the "solve" pack: h (and p) transformed in one launch, the
+    kept coefficients of both summed at once (``chunk_sums`` with n_max = 0: matrix j against row j
+    of the transformed pair), one inverse transform. Without p only H_0^-1's items run."""
+    def row(a: wp.array) -> tuple[wp.array, int, int]:
+        a = _scalar(a, so)
+        return wp.array(ptr=a.ptr, dtype=so.dtype, shape=(1, so.pitch), device=so.device, copy=False), 0, 1
+
+    _transform(so, [row(h)] if p is None else [row(h), row(p)], sc, sc.one_hat, 0, 1)
+    if p is None:
+        n0, row_items, row_list = so.packed["solve_h"]
+        _sparse_sum(so, "solve", sc.one_hat, 0, 0, sc, n0, (row_items, row_list))
     else:
-        u.zero_()
-    hs = _scalar(h, so)
-    _transform(so, [(wp.array(ptr=hs.ptr, dtype=so.dtype, shape=(1, so.pitch), device=so.device, copy=False), 0, 1)],
-               sc, sc.one_hat, 0, 1)
-    _sparse_sum(so, "H0_inv", sc.one_hat, 0, 0, sc)
+        _sparse_sum(so, "solve", sc.one_hat, 0, 0, sc)
+    u.zero_()
     wp.launch(kc.inverse_add, dim=so.size, inputs=[sc.y_hat, so.packed["perm"], _scalar(u, so)], device=so.device)
 
 
@@ -440,8 +459,10 @@ def solve(so: StepOperators, p: wp.array | None, h: wp.array, u: wp.array,
         return
     if so.compressed is not None:
         out = so.compressed.H0_inv.matvec(h.numpy()[: so.size])
+        if p is not None:
+            out += so.compressed.H0_inv_Gp.matvec(p.numpy()[: so.size])
     else:
         out = so.H0_inv.numpy() @ h.numpy()
-    if p is not None:
-        out += so.H0_inv_Gp.numpy() @ p.numpy()
+        if p is not None:
+            out += so.H0_inv_Gp.numpy() @ p.numpy()
     u.numpy()[:] = out
