@@ -164,6 +164,9 @@ def test_the_contact_response_reads_the_compressed_rows_of_H0_inv_Gp() -> None:
         assert err < (tol if tol is not None else bound), (ratio, err, bound)
         if tol is None:
             assert err > 1e-4  # CR 4 does drop something: the check above is not vacuous
+        assert set(so.W_rows) == set(np.unique(nodes).tolist())  # rebuilt once, remembered
+        again, _ = response_rows(so, nodes[:2])
+        np.testing.assert_array_equal(again.numpy(), rows.numpy()[:6])  # nodes 3 and 7, from the memo
 
 
 def test_compression_options_are_checked() -> None:

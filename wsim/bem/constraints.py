@@ -19,6 +19,9 @@ from wsim.rigid import cross_matrix
 from wsim.kernels import bem_constraints as kb
 
 
+ROW_MEMO_NODES = 2048  # nodes whose rows of a compressed W are remembered (0.2 GB at N = 2906, 0.7 at 10k)
+
+
 @dataclass(frozen=True)
 class PointResponse:
     """Per-node pieces of K (``wsim.kernels.bem_constraints``) on one device.
@@ -77,14 +80,24 @@ def response_rows(so: StepOperators, nodes: np.ndarray) -> tuple[wp.array, wp.ar
     """(W, row_of): rows of W = H_0^-1 G' for the kernels, node n's three rows at 3 row_of[n]..
     The dense W itself with the identity map, or, for compressed operators, the rows of ``nodes``
     alone rebuilt from the kept coefficients (``CompressedMatrix.rows``: log2(size) + 1 sparse
-    rows and one inverse transform each; other nodes map to -1)."""
+    rows and one inverse transform each, ~1 ms a node on the host at N = 2906; other nodes map
+    to -1), each node's once while it stays in the operators' memo (``StepOperators.W_rows``, at
+    most ROW_MEMO_NODES nodes: 12 N float32 bytes each)."""
     if so.compressed is None:
         return so.H0_inv_Gp, so.node_rows
     nodes = np.unique(np.asarray(nodes, dtype=np.int64))
-    rows = (3 * nodes[:, None] + np.arange(3)).ravel()
+    memo = so.W_rows  # W is constant: a node's rows are rebuilt once (contacts move slowly)
+    new = [int(n) for n in nodes if int(n) not in memo]
+    if new:
+        if len(memo) + len(new) > ROW_MEMO_NODES:
+            memo.clear()
+        rebuilt = so.compressed.H0_inv_Gp.rows((3 * np.asarray(new)[:, None] + np.arange(3)).ravel())
+        dtype = PRECISIONS[so.operators.precision]
+        for i, n in enumerate(new):
+            memo[n] = rebuilt[3 * i: 3 * i + 3].astype(dtype)
     row_of = np.full(so.operators.n_nodes, -1, dtype=np.int32)
     row_of[nodes] = np.arange(len(nodes), dtype=np.int32)
-    W = so.compressed.H0_inv_Gp.rows(rows).astype(PRECISIONS[so.operators.precision])
+    W = np.concatenate([memo[int(n)] for n in nodes]) if len(nodes) else np.zeros((0, so.size))
     return (wp.array(W, dtype=so.dtype, device=so.device),
             wp.array(row_of, dtype=wp.int32, device=so.device))
 

@@ -27,7 +27,7 @@ matrix is uploaded; the constraint solver reads the rows of H_0^-1 G' it needs
 from __future__ import annotations
 
 import weakref
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any
 
@@ -66,6 +66,9 @@ class StepOperators:
     vec4: dict[str, wp.array]  # Warp backend: vec4 views of H, G, H0_inv, H0_inv_Gp
     compressed: Any = None  # a CompressedHistory: H, G, H0_inv are then empty placeholders
     packed: Any = None  # Warp backend with compression: the device layout (``_compressed_step_operators``)
+    # node -> its three rows of the compressed H_0^-1 G', rebuilt once (``constraints.response_rows``):
+    # a memo of a constant, so sharing it changes no result
+    W_rows: dict = field(default_factory=dict, compare=False, repr=False)
 
     @cached_property
     def correction(self) -> Correction:
