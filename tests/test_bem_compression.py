@@ -136,7 +136,7 @@ def test_a_compressed_body_in_contact_follows_the_dense_one() -> None:
         assert got[-1][:, 1].min() > -1e-3  # on the ground, not through it
 
 
-def test_the_contact_response_reads_the_compressed_rows_of_H0_inv_Gp() -> None:
+def test_the_contact_response_reads_the_compressed_rows_of_H0_inv_Gp(monkeypatch) -> None:
     """A compressed operator set uploads no dense matrix; the constraint kernels read the rows of
     W = H_0^-1 G' rebuilt from its kept coefficients (``response_rows``): at CR 1 exactly W's rows
     (float32 storage), at CR 4 within the compressed matrix's own Frobenius error bound."""
@@ -167,6 +167,12 @@ def test_the_contact_response_reads_the_compressed_rows_of_H0_inv_Gp() -> None:
         assert set(so.W_rows) == set(np.unique(nodes).tolist())  # rebuilt once, remembered
         again, _ = response_rows(so, nodes[:2])
         np.testing.assert_array_equal(again.numpy(), rows.numpy()[:6])  # nodes 3 and 7, from the memo
+    import wsim.bem.constraints as bc  # a full memo is cleared, the rows asked for rebuilt: the same rows
+
+    monkeypatch.setattr(bc, "ROW_MEMO_NODES", 3)
+    rows_full, _ = response_rows(so, np.array([3, 7, 40, 41]))
+    np.testing.assert_array_equal(rows_full.numpy()[:9], rows.numpy())
+    assert set(so.W_rows) == {3, 7, 40, 41}
 
 
 def test_compression_options_are_checked() -> None:

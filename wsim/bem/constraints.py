@@ -19,7 +19,8 @@ from wsim.rigid import cross_matrix
 from wsim.kernels import bem_constraints as kb
 
 
-ROW_MEMO_NODES = 2048  # nodes whose rows of a compressed W are remembered (0.2 GB at N = 2906, 0.7 at 10k)
+ROW_MEMO_NODES = 2048  # nodes whose rows of a compressed W are remembered (0.2 GB at N = 2906, 0.7 at 10k;
+# a single call asking for more keeps them all until the next)
 
 
 @dataclass(frozen=True)
@@ -90,7 +91,8 @@ def response_rows(so: StepOperators, nodes: np.ndarray) -> tuple[wp.array, wp.ar
     new = [int(n) for n in nodes if int(n) not in memo]
     if new:
         if len(memo) + len(new) > ROW_MEMO_NODES:
-            memo.clear()
+            memo.clear()  # and this call's remembered nodes with it: rebuild them all
+            new = [int(n) for n in nodes]
         rebuilt = so.compressed.H0_inv_Gp.rows((3 * np.asarray(new)[:, None] + np.arange(3)).ravel())
         dtype = PRECISIONS[so.operators.precision]
         for i, n in enumerate(new):

@@ -133,8 +133,9 @@ def vec4_view(a: wp.array) -> wp.array:
 
 
 def _upload_padded(a: np.ndarray, dtype: Any, wdt: Any, pitch: int, device: wp.Device) -> wp.array:
-    """(..., R, C) host matrix(es) into a (..., R, pitch) device array, zero padded, one matrix at a time."""
-    out = wp.zeros((*a.shape[:-1], pitch), dtype=wdt, device=device)
+    """(..., R, C) host matrix(es) into a (M R, pitch) device array (M matrices one after the other:
+    2-D, see ``kernels.bem_step``), zero padded, staged one matrix at a time."""
+    out = wp.zeros((int(np.prod(a.shape[:-1])), pitch), dtype=wdt, device=device)
     mats = a.reshape(-1, *a.shape[-2:])
     rows = mats.shape[1]
     staging = np.zeros((rows, pitch), dtype=dtype)
@@ -174,11 +175,11 @@ def step_operators(ops: BemOperators, device: wp.Device, backend: str,
         pitch = n3
 
         def upload(a: np.ndarray) -> wp.array:
-            return wp.array(np.ascontiguousarray(a, dtype=dtype), dtype=wdt, device=device, copy=False)
+            a = np.ascontiguousarray(a, dtype=dtype)
+            return wp.array(a.reshape(-1, a.shape[-1]), dtype=wdt, device=device, copy=False)
 
-    stacked = (ops.n_max * n3, n3)  # 2-D: Warp's 32-bit strides would overflow a 3-D stack past 2 GiB a matrix
-    mats = {"H": upload(ops.H[1:].reshape(stacked)), "G": upload(ops.G[1:].reshape(stacked)), "H0_inv": upload(ops.H0_inv),
-            "H0_inv_Gp": upload(ops.H0_inv_Gp)}
+    # H_k, G_k stacked 2-D: Warp's 32-bit strides would overflow a 3-D stack past 2 GiB a matrix
+    mats = {"H": upload(ops.H[1:]), "G": upload(ops.G[1:]), "H0_inv": upload(ops.H0_inv), "H0_inv_Gp": upload(ops.H0_inv_Gp)}
     out = StepOperators(
         operators=ops, device=device, backend=backend, dtype=wdt, pitch=pitch, DQ=wp.array(dq, dtype=wdt, device=device),
         E=ops.solve_H0(np.hstack([ops.D[0], ops.Q[0]])), vec4={k: vec4_view(v) for k, v in mats.items()} if backend == "warp" else {},
