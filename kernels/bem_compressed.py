@@ -12,7 +12,7 @@ are summed against them row by row, and one inverse transform brings h back.
   source arrays) into registers at once and combines them into their 15 detail coefficients and
   their sum, float64 throughout.
 * the inverse transform, fused with the scatter back to the original order (``inverse_history``,
-  ``inverse_add``): x_i = c_0 / sqrt(n) + sum over the log2(n) blocks holding i of
+  ``inverse_set``): x_i = c_0 / sqrt(n) + sum over the log2(n) blocks holding i of
   +-c_block / sqrt(m) (+ in the block's first half).
 * ``chunk_sums`` (CPU; on CUDA ``bem_compressed_warps.chunk_sums_warps``) + ``row_sums``: the sparse products,
   balanced. The kept coefficients of the 2 n_max history matrices (values float32, columns uint16:
@@ -27,8 +27,6 @@ are summed against them row by row, and one inverse transform brings h back.
 """
 
 from __future__ import annotations
-
-from typing import Any
 
 import warp as wp
 
@@ -210,100 +208,7 @@ def inverse_history(h_hat: wp.array2d(dtype=wp.float32), perm: wp.array(dtype=wp
 
 
 @wp.kernel
-def inverse_add(y_hat: wp.array2d(dtype=wp.float32), perm: wp.array(dtype=wp.int32), y: wp.array(dtype=wp.float32)):
-    """y[perm[i]] += (W^T y_hat)_i."""
+def inverse_set(y_hat: wp.array2d(dtype=wp.float32), perm: wp.array(dtype=wp.int32), y: wp.array(dtype=wp.float32)):
+    """y[perm[i]] = (W^T y_hat)_i: every entry written (no zeroing pass first)."""
     i = wp.tid()
-    y[perm[i]] = y[perm[i]] + wp.float32(_inverse_at(y_hat, 0, i))
-
-# -- building the compressed operators on the device (``wsim.bem.compression.DeviceCoefficients``) --
-HALF = wp.constant(wp.float64(0.7071067811865476))  # sqrt(1/2): one orthonormal Haar level
-COUNT_BLOCK = wp.constant(256)
-
-
-@wp.kernel
-def permute_pad(A: wp.array2d(dtype=Any), perm: wp.array(dtype=wp.int32), out: wp.array2d(dtype=wp.float64)):
-    """out = P A P^T zero padded to out's size (P: new -> old ``perm``), float64."""
-    i, j = wp.tid()
-    n = perm.shape[0]
-    v = wp.float64(0.0)
-    if i < n and j < n:
-        v = wp.float64(A[perm[i], perm[j]])
-    out[i, j] = v
-
-
-@wp.kernel
-def haar_level_cols(src: wp.array2d(dtype=wp.float64), dst: wp.array2d(dtype=wp.float64), half: int):
-    """One level of the 1-D Haar transform along every row's first 2 half entries (``haar``):
-    dst[r, j] = (a + b) / sqrt 2, dst[r, half + j] = (a - b) / sqrt 2 for a, b = src[r, 2j], src[r, 2j + 1]."""
-    r, j = wp.tid()
-    a = src[r, 2 * j]
-    b = src[r, 2 * j + 1]
-    dst[r, j] = (a + b) * HALF
-    dst[r, half + j] = (a - b) * HALF
-
-
-@wp.kernel
-def haar_level_rows(src: wp.array2d(dtype=wp.float64), dst: wp.array2d(dtype=wp.float64), half: int):
-    """``haar_level_cols`` along every column's first 2 half entries (rows 2i, 2i + 1)."""
-    i, c = wp.tid()
-    a = src[2 * i, c]
-    b = src[2 * i + 1, c]
-    dst[i, c] = (a + b) * HALF
-    dst[half + i, c] = (a - b) * HALF
-
-
-@wp.kernel
-def copy_corner(src: wp.array2d(dtype=wp.float64), dst: wp.array2d(dtype=wp.float64)):
-    """dst[i, j] = src[i, j] over the launch's (rows, columns): a level's result back in place."""
-    i, j = wp.tid()
-    dst[i, j] = src[i, j]
-
-
-@wp.kernel
-def count_at_least(C: wp.array2d(dtype=wp.float64), t: wp.float64, counts: wp.array(dtype=wp.int32),
-                   kept2: wp.array(dtype=wp.float64)):
-    """Per row: how many |C_ij| >= t (counts) and the sum of their squares (kept2)."""
-    row, lane = wp.tid()
-    n = C.shape[1]
-    c = int(0)
-    s = wp.float64(0.0)
-    j = lane
-    while j < n:
-        v = C[row, j]
-        if wp.abs(v) >= t:
-            c += 1
-            s += v * v
-        j += wp.block_dim()
-    wp.tile_store(counts, wp.tile_sum(wp.tile(c)), offset=row)
-    wp.tile_store(kept2, wp.tile_sum(wp.tile(s)), offset=row)
-
-
-@wp.kernel
-def compact_rows(C: wp.array2d(dtype=wp.float64), t: wp.float64, indptr: wp.array(dtype=wp.int64),
-                 cols: wp.array(dtype=wp.int32), vals: wp.array(dtype=wp.float64)):
-    """The coefficients |C_ij| >= t of row r, in column order, at indptr[r] (CSR)."""
-    r = wp.tid()
-    e = indptr[r]
-    for j in range(C.shape[1]):
-        v = C[r, j]
-        if wp.abs(v) >= t:
-            cols[e] = j
-            vals[e] = v
-            e += wp.int64(1)
-
-
-@wp.kernel
-def dropped_products(C: wp.array2d(dtype=wp.float64), t: wp.float64, X: wp.array2d(dtype=wp.float64),
-                     out: wp.array2d(dtype=wp.float64)):
-    """out[r, k] = sum over the dropped |C_rj| < t of C_rj X[j, k]: (C - C_kept) X, whose column
-    norms are the matvec errors of the kept set on X's columns (orthonormal W)."""
-    row, k, lane = wp.tid()
-    n = C.shape[1]
-    s = wp.float64(0.0)
-    j = lane
-    while j < n:
-        v = C[row, j]
-        if wp.abs(v) < t:
-            s += v * X[j, k]
-        j += wp.block_dim()
-    wp.tile_store(out[row], wp.tile_sum(wp.tile(s)), offset=k)
+    y[perm[i]] = wp.float32(_inverse_at(y_hat, 0, i))

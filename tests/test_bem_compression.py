@@ -235,7 +235,7 @@ def test_device_kernels_equal_the_host_compressed_history(cube) -> None:
     wp.launch_tiled(kc.row_sums, dim=size, block_dim=int(kc.SPMV_BLOCK), device="cpu",
                     inputs=[row_items, row_list, partial, h_hat])
     h = wp.zeros(n, dtype=wp.float32, device="cpu")  # inverse transform, back to the original order
-    wp.launch(kc.inverse_add, dim=n, inputs=[h_hat, perm, h], device="cpu")
+    wp.launch(kc.inverse_set, dim=n, inputs=[h_hat, perm, h], device="cpu")
     got = h.numpy().astype(np.float64)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-5 * np.abs(want).max())
     assert 6 * len(vals) < 4 * 2 * n_max * n * n / 5  # 6 bytes a kept coefficient: CR 8 stores < 1/5

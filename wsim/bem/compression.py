@@ -193,21 +193,18 @@ class CompressedMatrix:
         """Rows ``rs`` of A (the reconstruction), (len(rs), n) in the original column order: each
         row is w_r^T C W P, w_r = W P e_r with log2(size) + 1 entries (``haar_basis``), so
         log2(size) + 1 sparse rows of C combined and one inverse transform."""
-        rs = np.asarray(rs, dtype=np.int64)
         inv = np.empty(self.n, dtype=np.int64)
         inv[self.perm] = np.arange(self.n)
-        basis = [haar_basis(int(inv[r]), self.size) for r in rs]
-        Psi = sp.csr_matrix((np.concatenate([v for _, v in basis]) if basis else np.zeros(0),
-                             np.concatenate([i for i, _ in basis]) if basis else np.zeros(0, dtype=np.int64),
-                             np.arange(len(rs) + 1) * (int(np.log2(self.size)) + 1)), shape=(len(rs), self.size))
+        basis = [haar_basis(int(inv[r]), self.size) for r in np.asarray(rs, dtype=np.int64)]
+        per_row = int(np.log2(self.size)) + 1
+        Psi = sp.csr_matrix((np.concatenate([v for _, v in basis] + [np.zeros(0)]),
+                             np.concatenate([i for i, _ in basis] + [np.zeros(0, dtype=np.int64)]),
+                             np.arange(len(basis) + 1) * per_row), shape=(len(basis), self.size))
         return from_wavelet(np.asarray((Psi @ self.C).todense()).T, self.perm).T
 
     def row(self, r: int) -> np.ndarray:
         """Row r of A (the reconstruction), in the original column order."""
-        inv = np.empty(self.n, dtype=np.int64)
-        inv[self.perm] = np.arange(self.n)
-        idx, val = haar_basis(int(inv[r]), self.size)
-        return from_wavelet(np.asarray(self.C[idx].T @ val).ravel(), self.perm)  # (w_i^T C) W P
+        return self.rows([r])[0]
 
     def row_dot(self, r: int, x: np.ndarray) -> float:
         """(A x)_r from row r alone (what a Gauss-Seidel sweep asks)."""

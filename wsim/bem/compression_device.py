@@ -4,7 +4,7 @@ operators (issue 20; ``wsim.bem.compression`` holds the maths and the host build
 ``DeviceCoefficients`` answers what ``compression.compress`` and ``compression.choose_keep`` ask
 of a coefficient set without the padded matrix ever leaving the device:
 
-* the transform C = W P A P^T W^T (``kernels/bem_compressed.py``: the matrix permuted and zero
+* the transform C = W P A P^T W^T (``kernels/bem_compression_build.py``: the matrix permuted and zero
   padded in float64, then log2(size) Haar levels along the rows and as many along the columns,
   each level written to a work matrix and copied back over the part it changed);
 * a *level* is a threshold: the coefficients kept are those with |C_ij| >= t, where t runs over
@@ -26,7 +26,7 @@ import scipy.sparse as sp
 import warp as wp
 
 from wsim.bem.compression import CompressedMatrix, _pow2
-from wsim.kernels import bem_compressed as kc
+from wsim.kernels import bem_compression_build as kc
 
 FLOAT32_INF_BITS = 0x7F800000  # the bits of +inf: level 0 keeps nothing
 

@@ -405,8 +405,7 @@ def _compressed_solve(so: StepOperators, p: wp.array | None, h: wp.array, u: wp.
         _sparse_sum(so, "solve", sc.one_hat, 0, 0, sc, n0, (row_items, row_list))
     else:
         _sparse_sum(so, "solve", sc.one_hat, 0, 0, sc)
-    u.zero_()
-    wp.launch(kc.inverse_add, dim=so.size, inputs=[sc.y_hat, so.packed["perm"], _scalar(u, so)], device=so.device)
+    wp.launch(kc.inverse_set, dim=so.size, inputs=[sc.y_hat, so.packed["perm"], _scalar(u, so)], device=so.device)
 
 
 def resolve_backend(backend: str, device: wp.Device) -> str:
