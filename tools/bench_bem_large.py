@@ -78,8 +78,10 @@ def main() -> None:
     ap.add_argument("--divisions", type=int, default=41)
     ap.add_argument("--ratio", type=float, default=32.0)
     ap.add_argument("--steps", type=int, default=40)
+    ap.add_argument("--error", type=float, default=0.01, help="compression_error of the 'error' variant")
     ap.add_argument("--variants", default="compressed,dense",
-                    help="comma list of compressed, dense (the dense set needs 44 GB of device memory at N = 10088)")
+                    help="comma list of compressed (CR --ratio), error (compression_error --error), dense (the dense "
+                         "set needs 44 GB of device memory at N = 10088)")
     ap.add_argument("--watch-memory", type=float, default=0.0, help="report host memory every this many seconds")
     args = ap.parse_args()
     if args.watch_memory > 0:
@@ -116,12 +118,22 @@ def main() -> None:
          kept_ratio=ch.ratio, history_bytes=so.history_bytes, step_bytes=so.matrix_bytes,
          dense_over_compressed=dense_step_bytes / so.matrix_bytes,
          relative_frobenius_error_H1=ch.H[0].relative_error)
-    accuracy(ops, ch)
+    accuracy(ops, ch, "ratio")
+    held = [so]
+    if "error" in args.variants.split(","):  # the error set, shared with the 'error' variant's body
+        t0 = time.perf_counter()
+        so_e = stepper.step_operators(ops, dev, backend, ("error", args.error), cache=False)
+        wp.synchronize_device(dev)
+        emit(stage="compress", error=args.error, seconds=round(time.perf_counter() - t0, 2),
+             kept_ratio=so_e.compressed.ratio, step_bytes=so_e.matrix_bytes,
+             dense_over_compressed=dense_step_bytes / so_e.matrix_bytes)
+        accuracy(ops, so_e.compressed, "error")
+        held.append(so_e)
 
     results = {}
     for variant in args.variants.split(","):
         results[variant] = run_variant(variant, ops, cube, jelly, dt, dev, backend, args)
-    del so  # held until here: the compressed variant shares its compressed set
+    del so, held  # held until here: the compressed variants share these sets
     if "dense" in results and results["dense"] is not None:
         ref = results["dense"]
         for name, u in results.items():
@@ -132,27 +144,33 @@ def main() -> None:
                      max_displacement_error_over_max_displacement=float(np.abs(u[:m] - ref[:m]).max()) / scale)
 
 
-def accuracy(ops, ch) -> None:
-    """Each compressed matrix's relative matvec error against the dense one, on smooth surface
-    fields (what a step mostly multiplies) and on random vectors (the worst case for a Haar basis)."""
-    from wsim.bem.compression import smooth_fields
+def accuracy(ops, ch, spec: str) -> None:
+    """Each compressed matrix's kept ratio and relative matvec error against the dense one, on
+    smooth surface fields (what a step mostly multiplies), on random vectors (the worst case for a
+    Haar basis), on a fresh draw of ``compression_error``'s tuning kinds (``tuning_fields``, seed 1)
+    and on the run's own load (the traction -n on the side x > 0)."""
+    from wsim.bem.compression import smooth_fields, tuning_fields
+    from wsim.mesh.surface import vertex_normals
 
+    s = ops.surface
     rng = np.random.default_rng(1)
     n3 = 3 * ops.n_nodes
-    X = {"smooth": smooth_fields(ops.surface.nodes, 4, seed=7), "random": rng.standard_normal((n3, 4))}
+    load = (-vertex_normals(s.nodes, s.faces) * (s.nodes[:, :1] > 0)).reshape(-1, 1)
+    X = {"smooth": smooth_fields(s.nodes, 4, seed=7), "random": rng.standard_normal((n3, 4)),
+         "tuning_kinds": tuning_fields(s, seed=1), "load": np.hstack([load, load])}
     names = [*(f"H{k}" for k in range(1, ops.n_max + 1)), *(f"G{k}" for k in range(1, ops.n_max + 1)), "H0_inv",
              "H0_inv_Gp"]
     dense = [*(ops.H[k] for k in range(1, ops.n_max + 1)), *(ops.G[k] for k in range(1, ops.n_max + 1)), ops.H0_inv,
              ops.H0_inv_Gp]
     out = {}
     for name, A, m in zip(names, dense, ch.matrices):
-        errs = {}
+        errs = {"ratio": round(m.ratio, 2)}
         for kind, x in X.items():
             exact = A @ x.astype(A.dtype)
             approx = np.stack([m.matvec(x[:, j]) for j in range(x.shape[1])], axis=1)
-            errs[kind] = float(np.linalg.norm(approx - exact) / np.linalg.norm(exact))
+            errs[kind] = float(np.max(np.linalg.norm(approx - exact, axis=0) / np.linalg.norm(exact, axis=0)))
         out[name] = errs
-    emit(stage="accuracy", relative_matvec_error=out)
+    emit(stage="accuracy", set=spec, relative_matvec_error=out)
 
 
 def run_variant(variant: str, ops, cube, jelly, dt: float, dev, backend: str, args):
@@ -163,10 +181,12 @@ def run_variant(variant: str, ops, cube, jelly, dt: float, dev, backend: str, ar
 
     import wsim
 
-    kw = {"dense": {}, "compressed": {"compression": args.ratio}}[variant]
+    kw = {"dense": {}, "compressed": {"compression": args.ratio}, "error": {"compression_error": args.error}}[variant]
     world = wsim.World(fps=1.0 / dt, device=dev.alias, gravity=(0.0, -9.81, 0.0))
+    t_add = time.perf_counter()
     try:
         body = world.add(wsim.BemBody(cube, jelly, dt, operators=ops, matvec=backend, cache=False, name=variant, **kw))
+        add_seconds = time.perf_counter() - t_add  # the compression (or the dense upload) of a new set
         x, nrm = body.rest_vertices, body.rest_normals
         body.add_traction(lambda t: -2e3 * nrm * (x[:, :1] > 0) * (t < 0.05))
         t0 = time.perf_counter()
@@ -200,7 +220,9 @@ def run_variant(variant: str, ops, cube, jelly, dt: float, dev, backend: str, ar
         uncnst = (time.perf_counter() - t0) / 10
     n = len(us)
     fall = float(body.state.frame.T[1] - body._T0[1])
-    emit(stage="step", variant=variant, steps=n, failed=failed, first_step_seconds=first, seconds_per_step=per_step,
+    ch = body._so.compressed
+    emit(stage="step", variant=variant, steps=n, kept_ratio=None if ch is None else ch.ratio,
+         add_seconds=add_seconds, failed=failed, first_step_seconds=first, seconds_per_step=per_step,
          uncnst_seconds=uncnst, frame_drop_m=fall, free_fall_m=-9.81 * dt * dt * n * (n + 1) / 2,
          max_displacement_by_step=[round(v, 9) for v in peak],
          step_matrix_bytes=body._so.matrix_bytes,

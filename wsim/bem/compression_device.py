@@ -10,8 +10,9 @@ of a coefficient set without the padded matrix ever leaving the device:
 * a *level* is a threshold: the coefficients kept are those with |C_ij| >= t, where t runs over
   the float32 numbers (level = FLOAT32_INF_BITS - the bits of t, so more level keeps more and
   bisecting over levels takes at most 31 passes); a count of the kept ones is one pass
-  (``count_at_least``), so is the product of the dropped ones with tuning vectors
-  (``dropped_products``), and so is the extraction into CSR (``compact_rows``, columns in order).
+  (``count_at_least``), so is the product of the kept ones with tuning vectors
+  (``kept_products``; the dropped ones' product is C X less that), and so is the extraction
+  into CSR (``compact_rows``, columns in order).
 
 Memory: two float64 matrices of the padded size (2 x 8 size^2 bytes: 4.3 GB at size 16384) and
 the input matrix; one instance serves every matrix of an operator set (``load`` reuses them).
@@ -53,7 +54,7 @@ class DeviceCoefficients:
         self._kept2 = wp.zeros(self.size, dtype=wp.float64, device=self.device)
         self.levels = (1, FLOAT32_INF_BITS)  # t = the smallest float32 > 0 ... t = 0: everything
         self._counted: dict[int, tuple[int, float]] = {}
-        self._X: dict[int, tuple[wp.array, wp.array]] = {}
+        self._X: dict[int, tuple[wp.array, wp.array, np.ndarray, tuple[int, int]]] = {}
         self.perm = np.arange(self.n)
         self.norm = 0.0
         self.total2 = 0.0
@@ -117,16 +118,27 @@ class DeviceCoefficients:
         return hi
 
     def dropped(self, level: int, X_hat: np.ndarray) -> np.ndarray:
-        """(C - C_kept) X_hat (size x k, float64) for the coefficients kept at ``level``."""
+        """(C - C_kept) X_hat (size x k, float64) for the coefficients kept at ``level``: C X_hat
+        (once per X_hat) less C_kept X_hat (``kept_products``: X read only where kept)."""
         found = self._X.get(id(X_hat))
-        if found is None or found[0].shape != X_hat.shape:
-            x = wp.array(np.ascontiguousarray(X_hat, dtype=np.float64), dtype=wp.float64, device=self.device)
-            found = self._X[id(X_hat)] = (x, wp.zeros(X_hat.shape, dtype=wp.float64, device=self.device))
-        x, out = found
-        t = _threshold(level)
-        wp.launch_tiled(kc.dropped_products, dim=X_hat.shape, block_dim=int(kc.COUNT_BLOCK), device=self.device,
-                        inputs=[self.C, wp.float64(t), x, out])
-        return out.numpy()
+        k = X_hat.shape[1]
+        groups = -(-k // kc.PRODUCT_GROUP)
+        if found is None or found[3] != X_hat.shape:
+            # the vectors in groups of 16 (zero padded), each group's rows contiguous: (groups, size) of vec16
+            Xp = np.zeros((X_hat.shape[0], groups * kc.PRODUCT_GROUP))
+            Xp[:, :k] = X_hat
+            Xg = wp.array(np.ascontiguousarray(Xp.reshape(X_hat.shape[0], groups, kc.PRODUCT_GROUP).transpose(1, 0, 2)),
+                          dtype=kc.vecgd, device=self.device)
+            out = wp.zeros(Xp.shape, dtype=wp.float64, device=self.device)
+            full = self._products(Xg, 0.0, out)[:, :k]
+            found = self._X[id(X_hat)] = (Xg, out, full, X_hat.shape)
+        Xg, out, full, _ = found
+        return full - self._products(Xg, _threshold(level), out)[:, :k]
+
+    def _products(self, Xg: wp.array, t: float, out: wp.array) -> np.ndarray:
+        wp.launch_tiled(kc.kept_products, dim=(self.size, Xg.shape[0]), block_dim=int(kc.COUNT_BLOCK),
+                        device=self.device, inputs=[self.C, wp.float64(t), Xg, out])
+        return np.array(out.numpy())  # a copy: on the CPU numpy() is a view of ``out``, which the next call overwrites
 
     def extract(self, level: int) -> CompressedMatrix:
         """The kept coefficients as a host ``CompressedMatrix`` (CSR, columns in order)."""

@@ -190,7 +190,7 @@ def step_operators(ops: BemOperators, device: wp.Device, backend: str,
 
 
 #: bump when the stored compressed arrays or their meaning change
-COMPRESSED_FORMAT = 2  # 2: H_0^-1 G' compressed too
+COMPRESSED_FORMAT = 3  # 2: H_0^-1 G' compressed too; 3: compression_error tuned on tuning_fields
 
 
 def _compressed_arrays(ch: Any, dtype: Any) -> dict[str, np.ndarray]:
