@@ -117,6 +117,8 @@ def test_the_default_tuning_holds_on_sharp_and_local_loads_it_was_not_tuned_on(c
 
     ops, H1, perms = cube
     tune, check = tuning_fields(ops.surface, seed=0), tuning_fields(ops.surface, seed=1)
+    assert tune.shape == (3 * ops.n_nodes, 32) and np.all(np.isfinite(tune))
+    np.testing.assert_array_equal(tune[:, :12], _smooth_fields(ops, 12, seed=0))  # node-major x, y, z
     eps = 0.03
     for A in (H1, np.asarray(ops.H0_inv_Gp)):
         c = choose_keep(A, perms["v+c"], eps, tune)
@@ -319,6 +321,14 @@ def test_the_device_build_keeps_the_host_coefficients(cube, device: str) -> None
         Xh = to_wavelet(_smooth_fields(ops, k, seed=k), perm, dc.size)
         np.testing.assert_allclose(dc.dropped(level, Xh), np.where(keep, 0.0, C) @ Xh, rtol=0,
                                    atol=1e-12 * np.abs(C).max() * np.abs(Xh).sum(axis=0).max())
+    # everything kept drops nothing; a new array of the same shape is not served from the cache
+    # (its id may be a freed one's)
+    assert np.all(dc.dropped(dc.levels[1], Xh) == 0.0)
+    for seed in (1, 2):
+        Xs = to_wavelet(_smooth_fields(ops, 5, seed=seed), perm, dc.size)
+        np.testing.assert_allclose(dc.dropped(level, Xs), np.where(keep, 0.0, C) @ Xs, rtol=0,
+                                   atol=1e-12 * np.abs(C).max() * np.abs(Xs).sum(axis=0).max())
+        del Xs
     ch = compress_history(ops, ratio=16.0, device=device)
     ref = compress_history(ops, ratio=16.0)
     for a, b in zip(ch.matrices, ref.matrices):

@@ -7,9 +7,11 @@ per stage as it finishes (a long run that stops early still reports what it did)
 The body is the bumpy cube of the paper's Table 1 (jelly, dt 0.01) at ``divisions`` (N = 6 d^2 + 2
 nodes), built without the cache (a 10k-node set is ~80 GB), the factorization on the GPU when
 CuPy is there (``wsim.bem.factorization``), compressed at CR ``ratio`` on the device. Stages:
-``build``; ``compress`` (time, bytes, H_1's Frobenius error); ``accuracy`` (each compressed
-matrix's relative matvec error against the dense one on smooth surface fields and on random
-vectors); then one ``step`` line per ``--variants`` entry (compressed, dense): the body falls
+``build``; ``compress`` (time, bytes, H_1's Frobenius error; a second one for the error set
+when the 'error' variant runs); ``accuracy`` (each compressed matrix's kept ratio and relative
+matvec error against the dense one on smooth surface fields, random vectors, fresh tuning
+fields and the run's own load); then one ``step`` line per ``--variants`` entry (compressed,
+error, dense): the body falls
 freely for ``steps`` steps with a traction pulse on one side (the frame must fall as the frame
 integrator's g dt^2 n (n + 1) / 2, the displacement ring down), with seconds per step and per
 unconstrained solve, the bytes a step reads and the peaks of device and host memory; and a

@@ -126,7 +126,10 @@ class BemBody(VertexImpulses, Body):
         compression: keep 1 / CR of the Haar coefficients of H_k, G_k (k >= 1), H_0^-1 and
             H_0^-1 G' (the paper's compression ratio CR >= 1; ``wsim.bem.compression``).
         compression_error: instead, per matrix the fewest coefficients whose relative matvec error
-            stays below this on smooth surface fields (``compression.choose_keep``).
+            stays below this on tuning fields of the kinds a step multiplies: smooth, one-sided and
+            local loads (``compression.tuning_fields``, ``compression.choose_keep``). Checked on
+            meshes up to a few thousand nodes; on a 10088-node body its trajectory error was
+            far above the target (README, Compression).
         divergence_limit: |u| [m] beyond which the step stops with ``SimulationDiverged``
             (default: the surface diameter; linear elasticity is meaningless past it).
         growth_check: stop with ``SimulationDiverged`` when the displacement of an unloaded body

@@ -262,7 +262,7 @@ class HostCoefficients:
         self.norm = float(np.linalg.norm(A))
         self.levels = (1, self.coeffs.size)
         self._order: np.ndarray | None = None
-        self._full: dict[int, np.ndarray] = {}  # C X_hat per tuning block (by identity)
+        self._full: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # id -> (X_hat, C X_hat) per tuning block
 
     def level_for(self, keep: int) -> int:
         return int(min(max(keep, 1), self.coeffs.size))
@@ -271,9 +271,10 @@ class HostCoefficients:
         """(C - C_kept) X_hat for the coefficients kept at ``level``."""
         if self._order is None:
             self._order = np.argsort(np.abs(self.coeffs).ravel())[::-1]
-        full = self._full.get(id(X_hat))
-        if full is None:
-            full = self._full[id(X_hat)] = self.coeffs @ X_hat
+        found = self._full.get(id(X_hat))
+        if found is None or found[0] is not X_hat:  # the entry holds X_hat: its id is not reused while cached
+            found = self._full[id(X_hat)] = (X_hat, self.coeffs @ X_hat)
+        full = found[1]
         r, c = np.divmod(self._order[:level], self.size)
         kept = sp.csr_matrix((self.coeffs[r, c], (r, c)), shape=self.coeffs.shape)
         return full - kept @ X_hat
@@ -383,7 +384,7 @@ def _keep_error(coef, A: np.ndarray, eps: float, vectors: np.ndarray) -> Compres
 def smooth_fields(nodes: np.ndarray, k: int, seed: int = 0) -> np.ndarray:
     """k smooth vector fields on the nodes (3N x k, node-major x, y, z): random combinations of
     low-order polynomials and long waves of the positions, per component; what displacement and
-    traction histories look like away from wavefronts (the tuning vectors of ``compression_error``)."""
+    traction histories look like away from wavefronts (part of ``tuning_fields``)."""
     x = np.asarray(nodes, dtype=np.float64)
     x = (x - x.mean(0)) / max(np.ptp(x, axis=0).max(), 1e-300)
     basis = [np.ones(len(x)), *x.T, *(x.T ** 2), x[:, 0] * x[:, 1], x[:, 1] * x[:, 2], x[:, 0] * x[:, 2],
@@ -399,7 +400,8 @@ def tuning_fields(surface: Any, seed: int = 0) -> np.ndarray:
     8 half-space indicators times a constant vector and 6 times the surface normal (a load on
     one side or on faces: jumps across a plane and, with the normal, across the mesh's edges);
     6 patches exp(-|x - c|^2 / (0.1 L)^2) about random nodes (contact-like, L the bounding box's
-    largest side). Smooth fields alone compress a large mesh so well (the N = 10088 cube kept
+    largest side; on a coarse mesh, under ~10 node spacings across, a patch is nearly a point
+    load, which keeps more coefficients there). Smooth fields alone compress a large mesh so well (the N = 10088 cube kept
     one coefficient in 67 at eps 0.03) that its response to a load on one side came out 12x too
     large; with these kinds it keeps one in 22 and every product of the load is within 2 %, yet
     the response is still 3x too large there (README: an open problem of compression_error).

@@ -54,7 +54,7 @@ class DeviceCoefficients:
         self._kept2 = wp.zeros(self.size, dtype=wp.float64, device=self.device)
         self.levels = (1, FLOAT32_INF_BITS)  # t = the smallest float32 > 0 ... t = 0: everything
         self._counted: dict[int, tuple[int, float]] = {}
-        self._X: dict[int, tuple[wp.array, wp.array, np.ndarray, tuple[int, int]]] = {}
+        self._X: dict[int, tuple[wp.array, wp.array, np.ndarray, np.ndarray]] = {}
         self.perm = np.arange(self.n)
         self.norm = 0.0
         self.total2 = 0.0
@@ -123,7 +123,7 @@ class DeviceCoefficients:
         found = self._X.get(id(X_hat))
         k = X_hat.shape[1]
         groups = -(-k // kc.PRODUCT_GROUP)
-        if found is None or found[3] != X_hat.shape:
+        if found is None or found[3] is not X_hat:  # the entry holds X_hat: its id is not reused while cached
             # the vectors in groups of 16 (zero padded), each group's rows contiguous: (groups, size) of vec16
             Xp = np.zeros((X_hat.shape[0], groups * kc.PRODUCT_GROUP))
             Xp[:, :k] = X_hat
@@ -131,7 +131,7 @@ class DeviceCoefficients:
                           dtype=kc.vecgd, device=self.device)
             out = wp.zeros(Xp.shape, dtype=wp.float64, device=self.device)
             full = self._products(Xg, 0.0, out)[:, :k]
-            found = self._X[id(X_hat)] = (Xg, out, full, X_hat.shape)
+            found = self._X[id(X_hat)] = (Xg, out, full, X_hat)
         Xg, out, full, _ = found
         return full - self._products(Xg, _threshold(level), out)[:, :k]
 
