@@ -185,6 +185,7 @@ def test_the_contact_response_reads_the_compressed_rows_of_H0_inv_Gp(monkeypatch
         if tol is None:
             assert err > 1e-4  # CR 4 does drop something: the check above is not vacuous
         assert set(so.W_rows) == set(np.unique(nodes).tolist())  # rebuilt once, remembered
+        assert response_rows(so, nodes[::-1])[0] is rows  # the same node set: the same device arrays, no upload
         again, _ = response_rows(so, nodes[:2])
         np.testing.assert_array_equal(again.numpy(), rows.numpy()[:6])  # nodes 3 and 7, from the memo
     import wsim.bem.constraints as bc  # a full memo is cleared, the rows asked for rebuilt: the same rows

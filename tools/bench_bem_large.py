@@ -157,9 +157,9 @@ def accuracy(ops, ch, spec: str) -> None:
     s = ops.surface
     rng = np.random.default_rng(1)
     n3 = 3 * ops.n_nodes
-    load = (-vertex_normals(s.nodes, s.faces) * (s.nodes[:, :1] > 0)).reshape(-1, 1)
+    load = (-vertex_normals(s.nodes, s.faces) * (s.nodes[:, :1] > 0)).reshape(-1, 1)  # the run's traction
     X = {"smooth": smooth_fields(s.nodes, 4, seed=7), "random": rng.standard_normal((n3, 4)),
-         "tuning_kinds": tuning_fields(s, seed=1), "load": np.hstack([load, load])}
+         "tuning_kinds": tuning_fields(s, seed=1), "load": load}
     names = [*(f"H{k}" for k in range(1, ops.n_max + 1)), *(f"G{k}" for k in range(1, ops.n_max + 1)), "H0_inv",
              "H0_inv_Gp"]
     dense = [*(ops.H[k] for k in range(1, ops.n_max + 1)), *(ops.G[k] for k in range(1, ops.n_max + 1)), ops.H0_inv,

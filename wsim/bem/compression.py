@@ -401,12 +401,13 @@ def tuning_fields(surface: Any, seed: int = 0) -> np.ndarray:
     one side or on faces: jumps across a plane and, with the normal, across the mesh's edges);
     6 patches exp(-|x - c|^2 / (0.1 L)^2) about random nodes (contact-like, L the bounding box's
     largest side; on a coarse mesh, under ~10 node spacings across, a patch is nearly a point
-    load, which keeps more coefficients there). Smooth fields alone compress a large mesh so well (the N = 10088 cube kept
-    one coefficient in 67 at eps 0.03) that its response to a load on one side came out 12x too
-    large; with these kinds it keeps one in 22 and every product of the load is within 2 %, yet
-    the response is still 3x too large there (README: an open problem of compression_error).
-    Each kind has an even count, so the even and odd columns (``choose_keep``'s halves) hold
-    every kind."""
+    load, which keeps more coefficients there). Each kind has an even count, so the even and odd
+    columns (``choose_keep``'s halves) hold every kind.
+
+    Why not smooth fields alone: they compress a large mesh so well (the N = 10088 cube kept one
+    coefficient in 67 at eps 0.03) that its response to a load on one side came out 12x too
+    large. With these kinds it keeps one in 22 and every product of that load is within 2 %, yet
+    the response is still 3x too large there (README: an open problem of compression_error)."""
     from wsim.mesh.surface import vertex_normals
 
     x = np.asarray(surface.nodes, dtype=np.float64)

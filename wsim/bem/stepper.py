@@ -69,6 +69,9 @@ class StepOperators:
     # node -> its three rows of the compressed H_0^-1 G', rebuilt once (``constraints.response_rows``):
     # a memo of a constant, so sharing it changes no result
     W_rows: dict = field(default_factory=dict, compare=False, repr=False)
+    # the last node set's (W rows, row_of) on the device: a body in steady contact asks for the same
+    # nodes solve after solve (the response matrix, then the point displacements)
+    W_uploaded: dict = field(default_factory=dict, compare=False, repr=False)
 
     @cached_property
     def correction(self) -> Correction:
