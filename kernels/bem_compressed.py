@@ -212,3 +212,26 @@ def inverse_set(y_hat: wp.array2d(dtype=wp.float32), perm: wp.array(dtype=wp.int
     """y[perm[i]] = (W^T y_hat)_i: every entry written (no zeroing pass first)."""
     i = wp.tid()
     y[perm[i]] = wp.float32(_inverse_at(y_hat, 0, i))
+
+
+FOLD_BLOCK = wp.constant(64)  # lanes of one ``rigid_fold`` dot product (3N / 64 terms a lane)
+
+
+@wp.kernel
+def rigid_fold(AC: wp.array2d(dtype=wp.float32), P: wp.array2d(dtype=wp.float32), B: wp.array2d(dtype=wp.float32),
+               slot0: int, n: int, out: wp.array2d(dtype=wp.float32)):
+    """out[s, j] = B[s, j] - AC[j] . P[s, :n] for ring rows s = slot0 + r: the frame terms that go
+    with the stored G'_k = G_k + D_k A + Q_k C (``wsim.bem.compression.folded_G``; AC = [A; C],
+    Eq. 10's a_ext = A p, alpha_ext = C p). One block a (row, j); the dot in float64."""
+    r, j, lane = wp.tid()
+    s = slot0 + r
+    acc = wp.float64(0.0)
+    if lane == 0:
+        acc = wp.float64(B[s, j])
+    i = lane
+    while i < n:
+        acc -= wp.float64(AC[j, i]) * wp.float64(P[s, i])
+        i += wp.block_dim()
+    total = wp.tile_sum(wp.tile(acc))
+    if lane == 0:
+        out[s, j] = wp.float32(total[0])

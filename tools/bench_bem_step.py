@@ -125,10 +125,10 @@ def run_case(name: str, device: str | None, precision: str, mesh_path: str | Non
 
         def history_and_ring() -> None:
             stepper.history(so, body._U_k, body._P_k, body.state.B, body.state.ring, h, body._scratch)
-            stepper.ring_written(so, body._U_k, body._P_k, slot, body._scratch)
+            stepper.ring_written(so, body._U_k, body._P_k, slot, body._scratch, body._bf_in)
 
         if body._scratch is not None:  # the two vectors a step adds to the wavelet-domain rings
-            ring = _time(lambda: stepper.ring_written(so, body._U_k, body._P_k, slot, body._scratch), 20, sync)
+            ring = _time(lambda: stepper.ring_written(so, body._U_k, body._P_k, slot, body._scratch, body._bf_in), 20, sync)
         graph = None
         if dev.is_cuda:  # the same launches replayed as one CUDA graph: device time without Python's launch cost
             with wp.ScopedCapture(device=dev) as capture:

@@ -451,6 +451,7 @@ class BemBody(VertexImpulses, Body):
         self._u_in = wp.zeros(so.pitch, dtype=so.dtype, device="cpu", pinned=pinned)
         self._p_in = wp.zeros(so.pitch, dtype=so.dtype, device="cpu", pinned=pinned)
         self._b_in = wp.zeros(6, dtype=so.dtype, device="cpu", pinned=pinned)
+        self._bf_in = wp.zeros(6, dtype=wp.float32, device="cpu", pinned=pinned) if self._scratch is not None else None
         if not self.frame_update:
             self._seed_rigid_history()
         self.state.material_velocity = self.state.frame.velocity.copy()
@@ -901,7 +902,9 @@ class BemBody(VertexImpulses, Body):
         wp.copy(st.U, self._u_in, dest_offset=slot * so.pitch, count=n3)
         wp.copy(st.P, self._p, dest_offset=slot * so.pitch, count=n3)
         wp.copy(st.B, self._b_in, dest_offset=slot * 6, count=6)
-        stepper.ring_written(so, self._U_k, self._P_k, slot, self._scratch)
+        if self._scratch is not None:  # the frame terms that go with the stored G'_k (``compression.folded_G``)
+            self._bf_in.numpy()[:] = b - np.concatenate([a_ext, alpha_ext])
+        stepper.ring_written(so, self._U_k, self._P_k, slot, self._scratch, self._bf_in)
         if self.frame_update:
             T_old, R_old = f.T.copy(), f.R.copy()
             f.update(self.dt, self._gravity, b[:3], b[3:], self._inertia, self._inertia_inv, self.gyroscopic)

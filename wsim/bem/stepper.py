@@ -193,7 +193,7 @@ def step_operators(ops: BemOperators, device: wp.Device, backend: str,
 
 
 #: bump when the stored compressed arrays or their meaning change
-COMPRESSED_FORMAT = 3  # 2: H_0^-1 G' compressed too; 3: compression_error tuned on tuning_fields
+COMPRESSED_FORMAT = 4  # 2: H_0^-1 G' compressed too; 3: compression_error tuned on tuning_fields; 4: G'_k stored
 
 
 def _compressed_arrays(ch: Any, dtype: Any) -> dict[str, np.ndarray]:
@@ -285,7 +285,8 @@ def _compressed_step_operators(ops: BemOperators, device: wp.Device, backend: st
         first = work_items(b[:, :2], kc.CHUNK)  # H_0^-1's items are the first ones (matrix by matrix)
         packed = {"perm": wp.array(ch.perm.astype(np.int32), dtype=wp.int32, device=device), "size": ch.size,
                   "history": arrays([*ch.H, *ch.G])[0], "solve": solve,
-                  "solve_h": (len(first[0]), *dev(first[3:], (wp.int64, wp.int32)))}
+                  "solve_h": (len(first[0]), *dev(first[3:], (wp.int64, wp.int32))),
+                  "AC": wp.array(np.vstack([ops.A, ops.C]).astype(np.float32), dtype=wp.float32, device=device)}
     empty = wp.zeros((0, pitch), dtype=wdt, device=device)
     out = StepOperators(
         operators=ops, device=device, backend=backend, dtype=wdt, pitch=pitch, H=empty, G=empty,
@@ -308,6 +309,7 @@ class CompressedScratch:
         self.hat = wp.zeros((2 * n_max, size), dtype=wp.float32, device=d)
         self.stale = True
         self.one_hat = wp.zeros((2, size), dtype=wp.float32, device=d)  # h and p of a solve
+        self.B_fold = wp.zeros((n_max, 6), dtype=wp.float32, device=d)  # B - [A; C] p, the ring G'_k needs
         self.y_hat = wp.zeros((1, size), dtype=wp.float32, device=d)
         items = max(len(so.packed["history"][2]), len(so.packed["solve"][2]))
         warps = int(kw.WARPS)
@@ -357,12 +359,18 @@ def _transform(so: StepOperators, sources: list[tuple[wp.array, int, int]], sc: 
     haar_rows(sources, so.packed["perm"], so.packed["size"], sc.sums, out, row0, row_stride)
 
 
-def ring_written(so: StepOperators, U: wp.array, P: wp.array, slot: int, scratch: CompressedScratch | None) -> None:
+def ring_written(so: StepOperators, U: wp.array, P: wp.array, slot: int, scratch: CompressedScratch | None,
+                 b_fold: wp.array | None) -> None:
     """Ring slot ``slot`` of U and P (vec4 views or plain) now holds the step's u and p: for a
-    compressed Warp body, their wavelet images enter the wavelet-domain rings (two vectors)."""
+    compressed Warp body, their wavelet images enter the wavelet-domain rings (two vectors), and
+    ``b_fold`` ((6,) float32, host or device: the step's [a - g', alpha] - [A p, C p], which the
+    body knows without a reduction over p) the folded frame-term ring."""
     if scratch is None or scratch.stale:
         return  # nothing kept in the wavelet domain, or rebuilt whole at the next history
+    if b_fold is None:
+        raise ValueError("ring_written: a compressed Warp body's step needs its folded frame terms (b_fold)")
     _transform(so, [(_scalar(U, so), slot, 1), (_scalar(P, so), slot, 1)], scratch, scratch.hat, slot, so.n_max)
+    wp.copy(scratch.B_fold, b_fold, dest_offset=slot * 6, count=6)
 
 
 def _sparse_sum(so: StepOperators, part: str, X: wp.array, n_max: int, step: int, sc: CompressedScratch,
@@ -388,10 +396,13 @@ def _compressed_history(so: StepOperators, U: wp.array, P: wp.array, B: wp.array
     n_max = so.n_max
     if sc.stale:  # the whole rings, once
         _transform(so, [(_scalar(U, so), 0, n_max), (_scalar(P, so), 0, n_max)], sc, sc.hat, 0, 1)
+        # the folded frame terms of every row, from the rings (``compression.rigid_fold``)
+        wp.launch_tiled(kc.rigid_fold, dim=(n_max, 6), block_dim=int(kc.FOLD_BLOCK), device=so.device,
+                        inputs=[so.packed["AC"], _scalar(P, so), B, 0, so.size, sc.B_fold])
         sc.stale = False
     _sparse_sum(so, "history", sc.hat, n_max, step, sc)
-    wp.launch(kc.inverse_history, dim=so.size, inputs=[sc.y_hat, so.packed["perm"], so.DQ, B, step, _scalar(h, so)],
-              device=so.device)
+    wp.launch(kc.inverse_history, dim=so.size, inputs=[sc.y_hat, so.packed["perm"], so.DQ, sc.B_fold, step,
+                                                       _scalar(h, so)], device=so.device)
 
 
 def _compressed_solve(so: StepOperators, p: wp.array | None, h: wp.array, u: wp.array, sc: CompressedScratch) -> None:
@@ -436,10 +447,13 @@ def history(so: StepOperators, U: wp.array, P: wp.array, B: wp.array, step: int,
     DQ = so.DQ.numpy()
     Un, Pn, Bn = U.numpy(), P.numpy(), B.numpy()
     n_max = so.n_max
-    if so.compressed is not None:
+    if so.compressed is not None:  # G'_k stored: the frame terms take the folded ring
+        from wsim.bem.compression import rigid_fold
+
         out = so.compressed.history(Un, Pn, step)
+        Bf = rigid_fold(so.operators, Bn, Pn)
         for k in range(1, n_max + 1):
-            out += DQ[k - 1] @ Bn[(step - k) % n_max]
+            out += DQ[k - 1] @ Bf[(step - k) % n_max]
         h.numpy()[: so.size] = out
         return
     H, G = (a.numpy().reshape(n_max, so.size, so.pitch) for a in (so.H, so.G))
