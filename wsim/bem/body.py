@@ -127,9 +127,10 @@ class BemBody(VertexImpulses, Body):
             H_0^-1 G' (the paper's compression ratio CR >= 1; ``wsim.bem.compression``).
         compression_error: instead, per matrix the fewest coefficients whose relative matvec error
             stays below this on tuning fields of the kinds a step multiplies: smooth, one-sided and
-            local loads (``compression.tuning_fields``, ``compression.choose_keep``). Checked on
-            meshes up to a few thousand nodes; on a 10088-node body its trajectory error was
-            far above the target (README, Compression).
+            local loads (``compression.tuning_fields``, ``compression.choose_keep``). It bounds
+            each product, not the history sum: right after a load is released, when that sum
+            cancels, the displacement can be far off relative to its small size (README,
+            Compression).
         divergence_limit: |u| [m] beyond which the step stops with ``SimulationDiverged``
             (default: the surface diameter; linear elasticity is meaningless past it).
         growth_check: stop with ``SimulationDiverged`` when the displacement of an unloaded body
