@@ -295,6 +295,7 @@ def place_surface(p0: wp.array(dtype=wp.vec3d), p1: wp.array(dtype=wp.vec3d), f:
 def surface_rows(
     surf: ContactSurface,
     mesh: wp.uint64,
+    closed: int,
     velocity: wp.array(dtype=wp.vec3d),
     max_dist: float,
     collider: int,
@@ -312,12 +313,12 @@ def surface_rows(
     their faces overlapped by 0.6 cell as they parted (the partner's springing back was not seen).
     Each sample inside records its row slot, the nearest face and its barycentric weights
     (``hit_*``; row -1: outside), so that ``surface_reaction`` can hand the partner the opposite
-    of what the rows push this body with."""
+    of what the rows push this body with. ``closed``: ``query_inside``'s test for that surface."""
     i = wp.tid()
     hit_row[i] = -1
     yp, x, an = sample_world(surf, i)
     p = wp.vec3(float(x[0]), float(x[1]), float(x[2]))
-    q = query_inside(mesh, p, max_dist, 1)
+    q = query_inside(mesh, p, max_dist, closed)
     if q.result and q.sign < 0.0:
         closest = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
         n = wp.mesh_eval_face_normal(mesh, q.face)
@@ -655,6 +656,7 @@ def pair_samples(
     other: ContactSurface,
     other_inverse: wp.mat33d,
     mesh: wp.uint64,
+    closed: int,
     max_dist: float,
     own_is_a: int,
     pair: int,
@@ -681,6 +683,10 @@ def pair_samples(
     (``own_is_a``: this body, else the other) at x_s: samples of both bodies in one cell make one
     row, the paper's collision grid of Sec. 3.5.
 
+    ``closed``: the inside test of ``query_inside`` for the other's surface (ray parity where it
+    is one watertight piece). A sample whose normal is perpendicular to the nearest face's (c_s = 0)
+    pushes with zero and is skipped.
+
     Record (``rec_i``): pair, own_is_a, own cell's first node, other's, A's collision cell.
     ``rec_f`` (``PAIR_RECORD`` floats): own weights (8), other's (8), own node masses (8), other's
     (8), c_s (3, world), overlap volume |n dGamma . n_B| d (1), own velocity at x_s from w and a
@@ -693,20 +699,22 @@ def pair_samples(
     for d in range(3):  # outside the other's grid box: not inside its surface
         if g[d] < wp.float64(0.0) or g[d] > wp.float64(other.grid.shape[d] - 1):
             return
-    # the cells' material first: it is 16 reads, the winding-number query below a tree walk, and
+    # the cells' material first: it is 16 reads, the inside query below a tree walk, and
     # most samples in the other's grid box lie in its empty cells
     base_o, wo, pm_o = cell_weights(own, yp)
     base_b, wb, pm_b = cell_weights(other, yo)
     if pm_o <= wp.float64(0.0) or pm_b <= wp.float64(0.0):
         return
     p = wp.vec3(float(x[0]), float(x[1]), float(x[2]))
-    q = query_inside(mesh, p, max_dist, 1)
+    q = query_inside(mesh, p, max_dist, closed)
     if not (q.result and q.sign < 0.0):
         return
     closest = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
     n = wp.mesh_eval_face_normal(mesh, q.face)
     cn = wp.vec3d(wp.float64(n[0]), wp.float64(n[1]), wp.float64(n[2]))
     coeff = pushed_area(an, cn)
+    if wp.length_sq(coeff) == wp.float64(0.0):  # its normal is perpendicular to the other's face's: no push
+        return
     vol = wp.abs(wp.dot(an, cn)) * wp.float64(wp.length(closest - p))
     slot = wp.atomic_add(count, 0, 1)
     if slot >= rec_i.shape[0]:

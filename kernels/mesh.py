@@ -19,21 +19,34 @@ import warp as wp
 _WINDING_ACCURACY = wp.constant(2.0)
 # w = sum over faces of 2 atan2(...) / (4 pi) = sum of atan2(...) / (2 pi).
 _TWO_PI = wp.constant(wp.float64(2.0 * math.pi))
+#: ``query_inside``'s ``closed`` for one watertight piece (``wsim.mesh.inside_test``)
+WATERTIGHT = wp.constant(2)
+# rays of the parity vote: each along (1, 1, 1) perturbed by up to 0.1 per axis (Warp's fixed
+# seed), the majority decides, so one ray through a shared edge (counted by both faces) is outvoted
+_PARITY_RAYS = wp.constant(3)
 
 
 @wp.func
 def query_inside(mesh: wp.uint64, p: wp.vec3, max_dist: float, closed: int) -> wp.MeshQueryPoint:
     """The nearest point of a surface to p within ``max_dist`` (face, u, v; ``result`` false where
-    none is that near) and p's side of it, sign < 0 inside. A closed surface (``closed`` != 0; the
-    mesh built with ``support_winding_number=True``) by the generalized winding number; an open one
-    (a terrain sheet collider, one-sided) by the normal of the nearest face, as the winding number
-    of an open sheet is about 1/2 on either side near it.
+    none is that near) and p's side of it, sign < 0 inside. A closed surface (``closed`` 1; the
+    mesh built with ``support_winding_number=True``) by the generalized winding number; a
+    watertight piece (``closed`` ``WATERTIGHT``, ``wsim.mesh.inside_test``: every edge between two
+    faces running it in opposite directions) by the parity of ray crossings, the majority of three
+    rays, which gives the same side off the surface at a third of the cost (two 32-cell EoL
+    spheres in contact on an H100: 0.43 against 1.27 ms a launch for the 20,480 samples of one
+    body, the same 2,625 inside of 4,018 tested; one ray 0.20 ms; a piece that folds through
+    itself counts twice-covered points as outside, where the winding number counts them inside);
+    an open one (a terrain sheet collider, one-sided) by the normal of
+    the nearest face, as the winding number of an open sheet is about 1/2 on either side near it.
 
     Every contact kernel asks this. The cheaper sign of the nearest face's normal misjudges points
     near sharp edges and thin parts (a fin, a box's edge): a point outside was taken as inside and
     projected onto the surface from as far as the query reached. Two tetrahedral PBD fish and a PBD
     ball of the showcase reached 400-1600 m/s within a frame that way, and at 40 substeps a lone
     fish under the ball 111 m/s (issue 18); with the winding number they stay below 4 m/s."""
+    if closed == WATERTIGHT:
+        return wp.mesh_query_point_sign_parity(mesh, p, max_dist, _PARITY_RAYS, 0.1)
     if closed != 0:
         return wp.mesh_query_point_sign_winding_number(mesh, p, max_dist, _WINDING_ACCURACY, 0.5)
     return wp.mesh_query_point_sign_normal(mesh, p, max_dist)

@@ -456,3 +456,55 @@ def test_tetrahedralize_2k5_surface_is_fast():
     assert elapsed < 5.0
     assert (tet_dets(points, tets) > 0).all()
     assert tet_dets(points, tets).sum() / 6.0 == pytest.approx(wm.signed_volume(v, f), rel=0.01)
+
+
+def test_watertight_topology():
+    """``watertight``: every edge run once each way by two faces; a hole, a flipped face or an
+    edge of three faces fails."""
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    assert wm.watertight(sphere.faces)
+    assert wm.watertight(wm.torus().faces)
+    assert not wm.watertight(sphere.faces[1:])
+    flipped = sphere.faces.copy()
+    flipped[0] = flipped[0, ::-1]
+    assert not wm.watertight(flipped)
+    fin = np.concatenate([sphere.faces, [[sphere.faces[0, 0], sphere.faces[0, 1], len(sphere.vertices)]]])
+    assert not wm.watertight(fin)
+
+
+def test_inside_test_takes_ray_parity_for_one_watertight_piece_only():
+    """Contact kernels count ray crossings only on one watertight piece: two pieces (which may
+    overlap, where the winding number is 2 but a ray crosses twice) or an open piece keep the
+    winding number."""
+    from wsim.kernels import mesh as km
+
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    assert wm.inside_test(sphere.faces) == km.WATERTIGHT
+    two = np.concatenate([sphere.faces, sphere.faces + len(sphere.vertices)])
+    assert wm.watertight(two) and wm.inside_test(two) == 1
+    assert wm.inside_test(sphere.faces[1:]) == 1
+
+
+@pytest.mark.parametrize("shape", ["torus", "bumpy_cube"])
+def test_ray_parity_inside_test_agrees_with_the_winding_number(shape):
+    """On a watertight surface the contact kernels' ray-parity inside test (``WATERTIGHT``) finds
+    the same points inside, and the same nearest faces, as the generalized winding number, for
+    points off the surface (on it the side is a tie either way)."""
+    import warp as wp
+
+    from wsim.contact import nearest_faces
+    from wsim.kernels import mesh as km
+
+    m = wm.torus() if shape == "torus" else wm.bumpy_cube(divisions=4)
+    assert wm.watertight(m.faces)
+    mesh = wp.Mesh(points=wp.array(m.vertices.astype(np.float32), dtype=wp.vec3, device="cpu"),
+                   indices=wp.array(m.faces.ravel().astype(np.int32), dtype=wp.int32, device="cpu"),
+                   support_winding_number=True)
+    lo, hi = m.bounds
+    p = np.random.default_rng(1).uniform(lo - 0.1, hi + 0.1, size=(4000, 3))
+    p = p[wm.SurfaceQuery(m.vertices, m.faces, device="cpu").classify(p)[1] > 1e-4]
+    winding = nearest_faces(mesh, p, 10.0, 0.0, "cpu", closed=True)
+    parity = nearest_faces(mesh, p, 10.0, 0.0, "cpu", closed=km.WATERTIGHT)
+    assert 0.2 * len(p) < len(winding[0]) < 0.8 * len(p)
+    np.testing.assert_array_equal(parity[0], winding[0])
+    np.testing.assert_array_equal(parity[1], winding[1])

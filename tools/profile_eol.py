@@ -26,11 +26,12 @@ sys.path.insert(0, os.path.dirname(__file__))
 from bench_eol import make_world  # noqa: E402
 
 from wsim.device import quiet_warp  # noqa: E402
+from wsim.eol.body import _step_together  # noqa: E402
 
 
 def steps(body, n: int) -> None:
     for _ in range(n):
-        body._step(min(body.dt_elastic, body.dt_max or np.inf))
+        _step_together([body], [0], min(body.dt_elastic, body.dt_max or np.inf))
 
 
 def profile_case(case: str, resolution: int, block: int, device: str, warmup: int, n: int, top: int,

@@ -133,7 +133,8 @@ class MeshCollider(Collider):
     (``transform`` a function t [s] -> 4x4 local-to-world matrix, rigid).
 
     A closed mesh must be outward-oriented; contact tells its inside by the generalized winding
-    number (``kernels/mesh.py`` ``query_inside``). An open one (a terrain sheet) is one-sided: the
+    number, or by ray parity where it is one watertight piece (``kernels/mesh.py``
+    ``query_inside``, ``wsim.mesh.inside_test``). An open one (a terrain sheet) is one-sided: the
     side its normals point away from is inside.
     """
 
@@ -151,6 +152,9 @@ class MeshCollider(Collider):
         closed = len(self.faces) > 0 and not wmesh.has_boundary(self.faces)
         wmesh.check_surface(self.vertices, self.faces, name=f"collider '{name}'", closed=closed)
         self.closed = closed
+        # contact kernels' inside test (``wsim.kernels.mesh.query_inside``): one-sided, winding
+        # number, or ray parity for one watertight piece (``wsim.mesh.inside_test``)
+        self.inside_test = wmesh.inside_test(self.faces) if closed else 0
         if len(self.faces) == 0:
             raise InvalidParameter(f"collider '{name}': the mesh has no faces")
         self.friction = _check_friction(friction, name)

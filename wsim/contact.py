@@ -48,17 +48,19 @@ class PairContacts:
 
 
 def nearest_faces(mesh: wp.Mesh, points: np.ndarray, reach: float, margin: float,
-                  device: wp.Device, closed: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                  device: wp.Device, closed: bool | int = True) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Indices of ``points`` (in the mesh's coordinates) inside the closed, outward ``mesh`` or
     within ``margin`` of it (searched up to ``reach``), their nearest faces, the barycentric
-    weights of the nearest points on them and the faces' outward normals."""
+    weights of the nearest points on them and the faces' outward normals. ``closed``: the
+    inside test of ``wsim.kernels.mesh.query_inside`` (False: one-sided; True: winding number;
+    ``WATERTIGHT``: ray parity)."""
     k = len(points)
     face = wp.empty(k, dtype=wp.int32, device=device)
     bary = wp.zeros(k, dtype=wp.vec3d, device=device)
     nrm = wp.zeros(k, dtype=wp.vec3d, device=device)
     wp.launch(km.nearest_face_points, dim=k, device=device,
               inputs=[mesh.id, wp.array(np.ascontiguousarray(points), dtype=wp.vec3d, device=device), float(reach),
-                      float(margin), int(bool(closed)), face, bary, nrm])
+                      float(margin), int(closed), face, bary, nrm])
     f = face.numpy()
     hit = np.flatnonzero(f >= 0)
     return hit, f[hit], bary.numpy()[hit], nrm.numpy()[hit]

@@ -98,6 +98,7 @@ class _MovingSurface:
     velocity: wp.array
     mu: float = 0.0
     reach: float = 0.0
+    closed: int = 1  # the inside test of ``kernels.mesh.query_inside`` (``wsim.mesh.inside_test``)
     hits: tuple | None = None
     p0_host: np.ndarray | None = None
     p1_host: np.ndarray | None = None
@@ -682,7 +683,7 @@ class EolBody(VertexImpulses, Body):
                 self._launch(kl.mesh_depth, len(x),
                           [col.device_mesh(self._device).id,
                                   wp.array(local.astype(np.float32), dtype=wp.vec3, device=self._device),
-                                  float(col.extent), int(col.closed), out])
+                                  float(col.extent), col.inside_test, out])
                 depth = float(out.numpy().max())
             if depth > tol:
                 raise InvalidParameter(
@@ -930,7 +931,8 @@ class EolBody(VertexImpulses, Body):
                                     n_faces=len(faces), impulse=wp.zeros(len(p0), dtype=wp.vec3d, device=d),
                                     velocity=wp.zeros(len(p0), dtype=wp.vec3d, device=d),
                                     step_impulse=wp.zeros(len(p0), dtype=wp.vec3d, device=d),
-                                    step_weight=wp.zeros(len(p0), dtype=wp.float64, device=d))
+                                    step_weight=wp.zeros(len(p0), dtype=wp.float64, device=d),
+                                    closed=wmesh.inside_test(faces))
             ms.p0_host, ms.p1_host = p0, np.asarray(p1, dtype=np.float64)
             ms.p0.assign(ms.p0_host)
             ms.p1.assign(ms.p1_host)
@@ -1294,7 +1296,7 @@ class EolBody(VertexImpulses, Body):
                 G, g = self._surfaces.velocity(ci, self.state.time, max(1e-6, 1e-3 * self.state.dt_prev))
                 self._launch(kc.mesh_rows, surf.sample_face.shape[0],
                           [surf, col.device_mesh(d).id, wp.mat44d(*np.linalg.inv(M).ravel()),
-                                  _mat(M[:3, :3]), float(col.extent), _mat(G), wp.vec3d(*g), ci, int(col.closed),
+                                  _mat(M[:3, :3]), float(col.extent), _mat(G), wp.vec3d(*g), ci, col.inside_test,
                                   self._row_acc, self._row_flag])
         t0, t1 = self._span
         f = self._fraction = min(max((self.state.time - t0) / max(t1 - t0, 1e-300), 0.0), 1.0)
@@ -1302,7 +1304,7 @@ class EolBody(VertexImpulses, Body):
             self._launch(kc.place_surface, ms.p0.shape[0], [ms.p0, ms.p1, wp.float64(f), ms.cur])
             ms.mesh.refit()
             self._launch(kc.surface_rows, surf.sample_face.shape[0],
-                      [surf, ms.mesh.id, ms.velocity, float(ms.reach), len(self._colliders) + k,
+                      [surf, ms.mesh.id, ms.closed, ms.velocity, float(ms.reach), len(self._colliders) + k,
                               self._row_acc, self._row_flag, *ms.hits])
 
     def _place_surface(self) -> None:
@@ -1341,6 +1343,7 @@ class EolBody(VertexImpulses, Body):
             self._launch(kc.world_surface, n, [self._surface, self._world_points])
             self._world_mesh = wp.Mesh(points=self._world_points, support_winding_number=True,
                                        indices=wp.array(self._tracked_faces.ravel(), dtype=wp.int32, device=self._device))
+            self._world_closed = wmesh.inside_test(self._tracked_faces)
         else:
             self._launch(kc.world_surface, n, [self._surface, self._world_points])
             self._world_mesh.refit()
@@ -1365,7 +1368,8 @@ class EolBody(VertexImpulses, Body):
                 F = other.state.F
                 inverse = F.T if other.lagrangian == "rigid" else np.linalg.inv(F)
                 self._launch(kc.pair_samples, P,
-                             [self._surface, other._surface, _mat(inverse), other._world_mesh.id, float(reach),
+                             [self._surface, other._surface, _mat(inverse), other._world_mesh.id, other._world_closed,
+                              float(reach),
                               int(own_is_a), int(pair), self._w, self._a, other._w, other._a, self._pair_count,
                               self._pair_rec_i, self._pair_rec_f])
             n = int(self._pair_count.numpy()[0])

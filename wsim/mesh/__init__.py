@@ -7,9 +7,9 @@
   takes ``file.usd:/World/prim``), in metres, Y up, outward faces, with its texture coordinates;
 * :mod:`~wsim.mesh.validate` -- ``check_surface``: every defect raised with an example index (and,
   for a body, several pieces; split vertices get a hint to merge them);
-* :mod:`~wsim.mesh.topology` -- ``edges``, ``hinges``, ``has_boundary``, ``pieces``;
+* :mod:`~wsim.mesh.topology` -- ``edges``, ``hinges``, ``has_boundary``, ``watertight``, ``pieces``;
 * :mod:`~wsim.mesh.shapes` -- procedural shapes for scenes, tools and tests;
-* :mod:`~wsim.mesh.inside` -- the one point-in-mesh test (``inside_surface``, ``SurfaceQuery``)
+* :mod:`~wsim.mesh.inside` -- the one point-in-mesh test (``inside_surface``, ``SurfaceQuery``) and the contact kernels' choice of test (``inside_test``)
   and the winding-number field (``winding_number``);
 * :mod:`~wsim.mesh.tets` -- ``tetrahedralize`` for ``PbdBody(tets="auto")`` (not named after the
   function, which would shadow the module as a package attribute).
@@ -26,7 +26,7 @@ Conventions used throughout (and expected by every caller):
   message alone.
 """
 
-from wsim.mesh.inside import SurfaceQuery, inside_surface, winding_number
+from wsim.mesh.inside import SurfaceQuery, inside_surface, inside_test, winding_number
 from wsim.mesh.shapes import beam, bumpy_cube, bumpy_sphere, fish, neck_body, torus
 from wsim.mesh.stage import load_usd
 from wsim.mesh.surface import (
@@ -43,7 +43,7 @@ from wsim.mesh.surface import (
     vertex_normals,
 )
 from wsim.mesh.tets import tetrahedralize
-from wsim.mesh.topology import edges, has_boundary, hinges, pieces
+from wsim.mesh.topology import edges, has_boundary, hinges, pieces, watertight
 from wsim.mesh.validate import check_surface
 
 __all__ = [
@@ -62,6 +62,7 @@ __all__ = [
     "edges",
     "hinges",
     "has_boundary",
+    "watertight",
     "pieces",
     "merge_coincident_vertices",
     "bumpy_sphere",
@@ -71,6 +72,7 @@ __all__ = [
     "torus",
     "bumpy_cube",
     "inside_surface",
+    "inside_test",
     "SurfaceQuery",
     "winding_number",
     "tetrahedralize",

@@ -59,6 +59,18 @@ class SurfaceQuery:
         return self.classify(points)[0]
 
 
+def inside_test(faces: Any) -> int:
+    """The contact kernels' inside test for a closed surface (``closed`` of
+    ``wsim.kernels.mesh.query_inside``): ray parity (``WATERTIGHT``) for one watertight piece,
+    where a ray from a point off the surface crosses it an odd number of times exactly when the
+    point is inside; the winding number (1) otherwise, as for several pieces that may overlap or
+    nest, where a point inside two of them has winding number 2 but crosses an even number of
+    faces. Topology only: a piece folded through itself is not seen."""
+    from wsim.mesh.topology import pieces, watertight
+
+    return km.WATERTIGHT if watertight(faces) and pieces(faces)[0] == 1 else 1
+
+
 def inside_surface(vertices: Any, faces: Any, points: Any, device: str | wp.Device | None = None) -> np.ndarray:
     """Boolean mask of the points (Q, 3) [m] inside a closed surface (generalized winding number > 1/2),
     by a Warp BVH query on ``device`` (default: ``wsim.device.resolve_device(None)``).

@@ -46,6 +46,24 @@ def has_boundary(faces: Any) -> bool:
     return bool(np.any(counts == 1))
 
 
+def watertight(faces: Any) -> bool:
+    """True when every edge joins exactly two faces that run it in opposite directions (a closed,
+    consistently oriented, edge-manifold surface): a ray from any point then crosses it an odd
+    number of times exactly when the point is inside, so ray parity can stand in for the winding
+    number (``wsim.kernels.mesh.query_inside``)."""
+    f = _faces_only(faces)
+    if len(f) == 0:
+        return False
+    n = int(f.max()) + 1
+    a, b = f.reshape(-1), f[:, [1, 2, 0]].reshape(-1)
+    if np.any(a == b):
+        return False
+    directed = a * n + b
+    if len(np.unique(directed)) != len(directed):  # an edge run twice the same way
+        return False
+    return bool(np.all(np.isin(b * n + a, directed)))
+
+
 def edges(faces: Any) -> np.ndarray:
     """Unique undirected edges of a triangle list: (E, 2) int32 with i < j, sorted lexicographically."""
     f = _faces_only(faces)

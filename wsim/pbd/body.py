@@ -572,7 +572,7 @@ class PbdBody(Body):
                         host_transforms=np.zeros((substeps + 1, 4, 4), dtype=np.float32),
                         host_inverses=np.zeros((substeps + 1, 4, 4), dtype=np.float32),
                         max_dist=2.0 * c.extent + 10.0 * self.contact_margin + 1.0,
-                        closed=int(c.closed),
+                        closed=c.inside_test,
                     )
                 )
 
