@@ -307,8 +307,13 @@ def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: st
     timings["assembly"] = t_assembly
     timings["transfer"] = t_transfer
     t3 = time.perf_counter()
-    Gp = G0 + D[0] @ A + Q[0] @ C
-    del G0, G0_host  # a large body's float64 G_0 is gigabytes: gone before the factors arrive
+    # G' = G_0 + D_0 A + Q_0 C in G_0's buffer, in row blocks: the expression's three temporaries
+    # of the full size (875 MB each for the bunny, faulted in fresh) cost more than the sums
+    Gp = G0
+    DQ, AC = np.concatenate([D[0], Q[0]], axis=1), np.concatenate([A, C], axis=0)
+    for r0 in range(0, cols, 1024):
+        Gp[r0:r0 + 1024] += DQ[r0:r0 + 1024] @ AC
+    del G0, G0_host  # Gp keeps the buffer (a numpy view holds its Warp array)
     backend = factorization_backend(factorization, dev.is_cuda)
     lu, H0_inv, H0_inv_Gp = factorize(H0, Gp, backend, dev.ordinal if dev.is_cuda else 0, dtype)
     del H0, H0_host

@@ -338,7 +338,9 @@ def row_friction(rows: PairRows, lam: np.ndarray, slip: np.ndarray) -> np.ndarra
     if "K" not in rows._cache:
         K = np.zeros((m, m))
         for s in rows.sides.values():
-            K[np.ix_(s.rows, s.rows)] += (s.G.multiply(s.inv_mass[None, :]) @ s.G.T).toarray()
+            GMinv = s.G.copy()  # G M^-1: each entry over its node's mass (``multiply`` goes through COO)
+            GMinv.data *= s.inv_mass[GMinv.indices]
+            K[np.ix_(s.rows, s.rows)] += (GMinv @ s.G.T).toarray()
         rows._cache["K"] = (K, np.diag(K).copy(), 1.0 / np.maximum(np.abs(K).sum(axis=1), 1e-300))
     K, diag, step = rows._cache["K"]
 
@@ -385,7 +387,9 @@ def moment_couples(rows: PairRows, changes: dict[int, np.ndarray]) -> dict[int, 
             parts = []
             for k in (a, b):
                 side = rows.sides[k]
-                used = np.flatnonzero(np.asarray(abs(side.G[np.flatnonzero(on[side.rows])]).sum(axis=0)).ravel() > 0.0)
+                mine = on[side.rows]  # the pair's rows among this side's (all of them for two bodies)
+                G = side.G if mine.all() else side.G[np.flatnonzero(mine)]
+                used = np.flatnonzero(np.bincount(G.indices[G.data != 0.0], minlength=G.shape[1]) > 0)
                 m = 1.0 / side.inv_mass[used]
                 x = side.x[used]
                 r = x - (m @ x) / m.sum()
