@@ -13,7 +13,8 @@ per stage (surface: validation + r_max; setup: uploads, colouring, mass properti
 Laplace-domain quadrature + CQ accumulation; transfer: device -> host; factorization: LU of H_0,
 H_0^-1, H_0^-1 G'; cache_store: HDF5 write with checksums), the factorization's backend,
 total_seconds (kernels already compiled by a tiny build: Warp's, and CuPy's where the
-factorization runs on the GPU), cache_load_seconds (the second build, loaded), peak host RSS, peak
+factorization runs on the GPU, though a fresh machine's first full-size run is slower still),
+cache_load_seconds (the second build, loaded), peak host RSS, peak
 device memory (Warp mempool high-water), bytes stored, and the paper's dense float64 storage model
 (2 + 2 n_max)(3N)^2 8 B for comparison.
 
@@ -73,7 +74,8 @@ def run_case(name: str, device: str, precision: str, mesh_path: str | None, quad
     dev = resolve_device(device)
     # compile (and load) the kernels on a tiny mesh first, so the timings are the warm path: Warp's
     # kernels, and CuPy's when the factorization runs there (its elementwise kernels compile on
-    # first use, ~4.7 s on a fresh H100 machine, then come from CuPy's on-disk cache)
+    # first use, then come from CuPy's on-disk cache). Not everything: on a fresh H100 machine the
+    # bunny's first full-size factorization still took 5.0 s, 1.1 s in the next run
     tiny = wsim.mesh.bumpy_cube(divisions=1)
     build_operators(tiny, material, dt, precision=precision, device=dev, cache=False)
     with tempfile.TemporaryDirectory() as tmp:

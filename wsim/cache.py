@@ -265,15 +265,19 @@ class OperatorCache:
                 f.attrs["meta"] = json.dumps(dict(meta or {}), sort_keys=True, default=str)
                 # the checksums are computed in threads while the datasets are written (hashlib
                 # releases the GIL): a 7.9 GB operator set took 9.1 s to store on an H100 host
-                # with the hashing first, one dataset of 2.6 GB alone ~1.8 s of SHA-256
-                with ThreadPoolExecutor(max_workers=max(1, min(len(data), os.cpu_count() or 1))) as pool:
-                    digests = {name: pool.submit(_dataset_sha256, a) for name, a in data.items()}
+                # with the hashing first, one dataset of 2.6 GB alone ~1.8 s of SHA-256. An array
+                # that is not C-ordered (the LU factors, Fortran order) is copied by the hash and
+                # by h5py alike: it is hashed after the writes, so that the two copies (7.3 GB
+                # each for a 10k-node body) are never held at once.
+                overlap = [n for n, a in data.items() if a.flags.c_contiguous]
+                with ThreadPoolExecutor(max_workers=max(1, min(len(overlap), os.cpu_count() or 1))) as pool:
+                    digests = {name: pool.submit(_dataset_sha256, data[name]) for name in overlap}
                     for name, a in data.items():
                         # Contiguous and uncompressed: dense operators barely compress, and reads
                         # stay a single memcpy-sized I/O.
                         f.create_dataset(name, data=a)
-                    for name, digest in digests.items():
-                        f[name].attrs["sha256"] = digest.result()
+                    for name in data:
+                        f[name].attrs["sha256"] = digests[name].result() if name in digests else _dataset_sha256(data[name])
             with open(tmp, "r+b") as fh:  # data must be on disk before the rename publishes it
                 os.fsync(fh.fileno())
             os.chmod(tmp, 0o644)  # mkstemp makes 0600; a shared cache must stay readable

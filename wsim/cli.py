@@ -1,4 +1,5 @@
-"""Command line: ``wsim run SCENE.py -o OUT.usdc``, ``wsim recover OUT.usdc`` and ``wsim info``.
+"""Command line: ``wsim run SCENE.py -o OUT.usdc``, ``wsim recover OUT.usdc``, ``wsim info`` and
+``wsim sweep SCENE.py --param NAME=V1,V2 -o DIR`` (``wsim.sweep``).
 
 A scene is a plain Python file that defines ``build(mesh=None, device=None) -> wsim.World`` and,
 optionally, ``FRAMES`` (its default frame count). It can also run standalone:
@@ -21,7 +22,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import runpy
 import signal
 import sys
 from pathlib import Path
@@ -128,14 +128,31 @@ def _mtime(path: str) -> int | None:
 
 
 def _load_scene(path: str) -> tuple[Callable[..., object], int, str]:
-    p = Path(path)
-    if not p.is_file():
-        raise SystemExit(f"wsim: error: scene file '{path}' not found")
-    ns = runpy.run_path(str(p), run_name="wsim_scene")
-    build = ns.get("build")
-    if not callable(build):
-        raise SystemExit(f"wsim: scene '{path}' must define build(mesh=None, device=None) -> wsim.World")
-    return build, int(ns.get("FRAMES", DEFAULT_FRAMES)), p.stem
+    from wsim.sweep import load_scene
+
+    try:
+        build, frames, name, _ = load_scene(path)
+    except WsimError as exc:
+        raise SystemExit(f"wsim: error: {exc}") from None
+    return build, frames, name
+
+
+def _sweep(args: argparse.Namespace) -> int:
+    from wsim.sweep import parse_param, summary_table, sweep
+
+    try:
+        params = dict(parse_param(p) for p in args.param)
+        records = sweep(args.scene, params, args.out, device=args.device, frames=args.frames, engine=args.engine,
+                        address=args.address, gpus_per_task=args.gpus_per_task)
+    except WsimError as exc:
+        print(f"wsim: error: {exc}", file=sys.stderr)
+        return 2
+    print(summary_table(records))
+    failed = sum(r["status"] != "ok" for r in records)
+    if failed:
+        print(f"wsim sweep: {failed} of {len(records)} variants failed (their errors: {args.out}/<variant>.json)",
+              file=sys.stderr)
+    return 1 if failed else 0
 
 
 def info() -> str:
@@ -223,6 +240,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     rec.add_argument("out", help="the killed run's output file (its journal is OUT.journal)")
     rec.add_argument("-o", "--to", default=None, help="write them here instead of OUT")
     sub.add_parser("info", help="print versions, devices and the cache folder")
+    swp = sub.add_parser("sweep", help="run every combination of a scene's parameters (one task each; Ray if installed)")
+    swp.add_argument("scene", help="path of a scene script (build(mesh=None, device=None, **params))")
+    swp.add_argument("--param", action="append", default=[], metavar="NAME=V1,V2,...",
+                     help="a keyword of the scene's build and its values (repeat for more)")
+    swp.add_argument("-o", "--out", required=True, help="output folder: a USD file and a JSON line per variant")
+    swp.add_argument("--device", default=None, help="device of the in-process runner (Ray tasks get their own GPU, or the CPU)")
+    swp.add_argument("--frames", type=int, default=None, help="frames per variant (default: the scene's FRAMES)")
+    swp.add_argument("--engine", default="auto", choices=["auto", "local", "ray"],
+                     help="auto: Ray if installed, else one after another in this process")
+    swp.add_argument("--address", default=None, help="a Ray cluster's address (default: a local Ray)")
+    swp.add_argument("--gpus-per-task", type=float, default=1.0, help="GPUs a Ray task takes (0.25: four small scenes a GPU)")
     pre = sub.add_parser("preview", help="render a quick-look of a USD output (.png contact sheet, .gif, .mp4); no display or GPU needed")
     pre.add_argument("usd", help="a USD file written by wsim (any stage with meshes under /World)")
     pre.add_argument("-o", "--out", default=None, help="output .png (contact sheet), .gif or .mp4 (needs ffmpeg) (default: <usd>.png)")
@@ -252,6 +280,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     if args.command == "cache":
         return _cache(args)
+    if args.command == "sweep":
+        from wsim.device import quiet_warp
+
+        quiet_warp()
+        return _sweep(args)
     if args.command == "recover":
         from wsim.usd import recover
 
