@@ -278,3 +278,26 @@ def test_bad_meshes_and_parameters_fail_before_any_assembly(monkeypatch):
     monkeypatch.undo()
     with pytest.raises(wsim.InvalidParameter, match="positive real part"):
         laplace_matrices(m.vertices, m.faces, MAT, -1.0 + 2j)
+
+
+def test_assembly_over_several_devices_gives_the_same_operators():
+    """Row blocks spread over a device list (the CPU twice: the blocks take turns, launched before
+    any is read back, as on several GPUs) give the operators of one device, bit for bit."""
+    import numpy as np
+    import trimesh
+
+    import wsim
+    from wsim.bem.operators import assembly_devices, build_operators
+    from wsim.errors import InvalidParameter
+
+    shape = trimesh.creation.icosphere(subdivisions=1, radius=0.1)
+    material = wsim.ElasticMaterial(mu=1.0e5, nu=0.45, rho=1000.0)
+    kw = dict(device="cpu", cache=False, n_max=4, memory_limit=1)  # one row a block: 12 blocks
+    one = build_operators(shape, material, 0.01, **kw)
+    two = build_operators(shape, material, 0.01, devices=["cpu", "cpu"], **kw)
+    for name in ("H", "G", "D", "Q", "H0_inv", "H0_inv_Gp", "Gp"):
+        np.testing.assert_array_equal(getattr(two, name), getattr(one, name), err_msg=name)
+    assert [d.alias for d in assembly_devices("cpu", None)] == ["cpu"]
+    for bad in ("cuda:0,cuda:1", [], 3):
+        with pytest.raises(InvalidParameter, match="devices"):
+            assembly_devices(None, bad)

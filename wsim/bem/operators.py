@@ -37,6 +37,7 @@ from wsim.bem.mass import mass_properties, traction_maps
 from wsim.bem.quadrature import Quadrature, quadrature_from
 from wsim.bem.surface import BemSurface, prepare_surface
 from wsim.cache import OperatorCache, content_key
+from wsim.device import resolve_device
 from wsim.errors import InvalidParameter
 from wsim.kernels import bem_assembly as ka
 from wsim.materials import ElasticMaterial
@@ -137,6 +138,20 @@ def surface_diameter(points: np.ndarray) -> float:
     return best
 
 
+def assembly_devices(device: Any = None, devices: Any = None) -> list[wp.Device]:
+    """The devices a build spreads its row blocks over: ``devices`` = None (``device`` alone),
+    "all" (every CUDA device; the CPU without one) or a list (a device may repeat: its blocks then
+    take turns on it, which is how the CPU tests the path)."""
+    if devices is None:
+        return [resolve_device(device)]
+    if isinstance(devices, str) and devices == "all":
+        cuda = wp.get_cuda_devices()
+        return list(cuda) if cuda else [resolve_device("cpu")]
+    if isinstance(devices, str) or not isinstance(devices, (list, tuple)) or not devices:
+        raise InvalidParameter(f"devices = {devices!r}: None, 'all' or a non-empty list of devices (e.g. ['cuda:0', 'cuda:1'])")
+    return [resolve_device(d) for d in devices]
+
+
 def _rows_per_block(device: wp.Device, n: int, n_max: int, memory_limit: int | None) -> int:
     """Rows whose complex H, G and n_max + 1 real accumulators of each fit the budget."""
     per_row = 3 * 3 * n * (8 * (4 + 2 * (n_max + 1)) + 4 * (n_max + 1)) + 5 * 9 * 8  # + the float32 cast
@@ -161,6 +176,7 @@ def build_operators(
     memory_limit: int | None = None,
     progress: bool | None = None,
     factorization: str = "auto",
+    devices: Any = None,
     **quadrature: Any,
 ) -> BemOperators:
     """Build (or load from the cache) the operator set of one BEM body.
@@ -182,6 +198,11 @@ def build_operators(
         factorization: where the LU of H_0 and the products H_0^-1, H_0^-1 G' run: "scipy" (host),
             "cupy" (GPU, the optional ``gpu`` extra) or "auto" (CuPy on a CUDA build when it
             imports); ``wsim.bem.factorization``. Not part of the cache key (same factors to round-off).
+        devices: spread the Laplace-domain assembly and CQ accumulation over several devices by row
+            blocks: "all" (every CUDA device) or a list, e.g. ["cuda:0", "cuda:1"]; the blocks are
+            launched on all of them before any is read back, so they run together. The factorization
+            runs on the first. The same operators as on one device (each block is computed alike).
+            Not part of the cache key.
         **quadrature: :class:`~wsim.bem.quadrature.Quadrature` knobs.
     """
     t_start = time.perf_counter()
@@ -198,6 +219,7 @@ def build_operators(
     if not (0.0 < eps < 1.0):
         raise InvalidParameter(f"eps = {eps!r} must be in (0, 1)")
     factorization_backend(factorization, False)  # a bad name fails before any work
+    assembly_devices(device, devices)  # and a bad device list
     quad = quadrature_from(quadrature)
     vertices, faces = wmesh.surface_arrays(mesh, "bem mesh")
     surface = prepare_surface(vertices, faces, double_nodes=double_nodes, name="bem mesh")
@@ -211,7 +233,7 @@ def build_operators(
     def build() -> dict[str, np.ndarray]:
         t_build = time.perf_counter()
         out = _build(surface, material, dt, method, eps, precision, int(n_max), r_max, quad, device,
-                     memory_limit, progress, timings, factorization).to_arrays()
+                     memory_limit, progress, timings, factorization, devices).to_arrays()
         timings["build"] = time.perf_counter() - t_build
         return out
 
@@ -237,14 +259,15 @@ def build_operators(
 
 def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: str, eps: float, precision: str,
            n_max: int, r_max: float, quad: Quadrature, device: Any, memory_limit: int | None, progress: bool | None,
-           timings: dict[str, float], factorization: str = "auto") -> BemOperators:
+           timings: dict[str, float], factorization: str = "auto", devices: Any = None) -> BemOperators:
     from tqdm.auto import tqdm
 
     from wsim.progress import show_progress
 
     t0 = time.perf_counter()
-    assembler = LaplaceAssembler(surface, material, quad, device)
-    dev = assembler.device
+    # one assembler a device; the row blocks go to them in turn (``assembly_devices``)
+    assemblers = [LaplaceAssembler(surface, material, quad, d) for d in assembly_devices(device, devices)]
+    dev = assemblers[0].device  # the factorization's and the host buffers' device
     props = mass_properties(surface.nodes, surface.faces, material.rho)
     A, C = traction_maps(surface, props)
     s_l, R, L = cq.sample_points(dt, n_max, method, eps)
@@ -254,11 +277,11 @@ def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: st
     wp_dtype = wp.float32 if dtype == np.float32 else wp.float64
     D = np.zeros((n_max + 1, 3 * n, 3))
     Q = np.zeros_like(D)
-    rows = _rows_per_block(dev, n, n_max, memory_limit)
+    rows = min(_rows_per_block(a.device, n, n_max, memory_limit) for a in assemblers)
     blocks = [(r0, min(rows, n - r0)) for r0 in range(0, n, rows)]
     cols = 3 * n
     # host results in page-locked memory on CUDA: device -> host copies at full PCIe/NVLink speed
-    pinned = dev.is_cuda
+    pinned = any(a.device.is_cuda for a in assemblers)
     # 2-D (Warp's strides are 32 bits: a 3-D stack of 10k-node matrices would overflow them)
     H_host = wp.empty(((n_max + 1) * cols, cols), dtype=wp_dtype, device="cpu", pinned=pinned)
     G_host = wp.empty(((n_max + 1) * cols, cols), dtype=wp_dtype, device="cpu", pinned=pinned)
@@ -267,40 +290,50 @@ def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: st
     timings["setup"] = time.perf_counter() - t0
     t_assembly = t_transfer = 0.0
     bar = tqdm(total=len(blocks) * len(s_l), desc="BEM operators", unit="sample", disable=not show_progress(progress))
-    with wp.ScopedDevice(dev):
-        block = assembler.block(rows)
-        acc_H = wp.zeros(((n_max + 1) * 3 * rows, cols), dtype=wp.float64)  # H_k: rows k 3 rows ..
-        acc_G = wp.zeros_like(acc_H)
-        cast = wp.empty(acc_H.shape, dtype=wp.float32) if wp_dtype == wp.float32 else None
-        for r0, nr in blocks:
-            t1 = time.perf_counter()
+    work = []  # per device: its assembler, row block buffers and accumulators (H_k: rows k 3 rows ..)
+    for a in assemblers:
+        acc_H = wp.zeros(((n_max + 1) * 3 * rows, cols), dtype=wp.float64, device=a.device)
+        work.append((a, a.block(rows), acc_H, wp.zeros_like(acc_H),
+                     wp.empty(acc_H.shape, dtype=wp.float32, device=a.device) if wp_dtype == wp.float32 else None))
+    for first in range(0, len(blocks), len(work)):
+        # one block a device at a time, all launched before any is read: the devices run together
+        batch = list(zip(work, blocks[first:first + len(work)]))
+        t1 = time.perf_counter()
+        for (a, block, acc_H, acc_G, _), _ in batch:
             acc_H.zero_()
             acc_G.zero_()
-            for l, s in enumerate(s_l):
-                assembler.assemble(complex(s), r0, nr, block)
-                w_re = wp.array(W[l].real.copy(), dtype=wp.float64)
-                w_im = wp.array(W[l].imag.copy(), dtype=wp.float64)
-                wp.launch(ka.cq_accumulate, dim=(3 * nr, cols), inputs=[block.H_re, block.H_im, w_re, w_im, acc_H])
-                wp.launch(ka.cq_accumulate, dim=(3 * nr, cols), inputs=[block.G_re, block.G_im, w_re, w_im, acc_G])
-                small = assembler.small_to_host(block, r0, nr, props.com)
+        for l, s in enumerate(s_l):
+            for (a, block, acc_H, acc_G, _), (r0, nr) in batch:
+                a.assemble(complex(s), r0, nr, block)
+                w_re = wp.array(W[l].real.copy(), dtype=wp.float64, device=a.device)
+                w_im = wp.array(W[l].imag.copy(), dtype=wp.float64, device=a.device)
+                wp.launch(ka.cq_accumulate, dim=(3 * nr, cols), inputs=[block.H_re, block.H_im, w_re, w_im, acc_H],
+                          device=a.device)
+                wp.launch(ka.cq_accumulate, dim=(3 * nr, cols), inputs=[block.G_re, block.G_im, w_re, w_im, acc_G],
+                          device=a.device)
+            for (a, block, *_), (r0, nr) in batch:
+                small = a.small_to_host(block, r0, nr, props.com)
                 sl = slice(3 * r0, 3 * (r0 + nr))
                 D[:, sl] += np.real(W[l][:, None, None] * small["D"][None])
                 Q[:, sl] += np.real(W[l][:, None, None] * small["Q"][None])
                 bar.update(1)
-            wp.synchronize_device(dev)
-            t2 = time.perf_counter()
+        for (a, *_), _ in batch:
+            wp.synchronize_device(a.device)
+        t2 = time.perf_counter()
+        for (a, block, acc_H, acc_G, cast), (r0, nr) in batch:
             count = 3 * nr * cols
             for acc, host, host0 in ((acc_H, H_host, H0_host), (acc_G, G_host, G0_host)):
                 wp.copy(host0, acc, dest_offset=3 * r0 * cols, src_offset=0, count=count)
                 src = acc
                 if cast is not None:
-                    wp.launch(ka.to_float32, dim=acc.shape, inputs=[acc, cast])
+                    wp.launch(ka.to_float32, dim=acc.shape, inputs=[acc, cast], device=a.device)
                     src = cast
                 for k in range(n_max + 1):
                     wp.copy(host, src, dest_offset=k * cols * cols + 3 * r0 * cols, src_offset=k * 3 * rows * cols, count=count)
-            wp.synchronize_device(dev)
-            t_transfer += time.perf_counter() - t2
-            t_assembly += t2 - t1
+        for (a, *_), _ in batch:
+            wp.synchronize_device(a.device)
+        t_transfer += time.perf_counter() - t2
+        t_assembly += t2 - t1
     H, G = (a.numpy().reshape(n_max + 1, cols, cols) for a in (H_host, G_host))
     H0, G0 = H0_host.numpy(), G0_host.numpy()
     bar.close()
