@@ -280,7 +280,7 @@ def test_bad_meshes_and_parameters_fail_before_any_assembly(monkeypatch):
         laplace_matrices(m.vertices, m.faces, MAT, -1.0 + 2j)
 
 
-def test_assembly_over_several_devices_gives_the_same_operators():
+def test_assembly_over_several_devices_gives_the_same_operators(monkeypatch):
     """Row blocks spread over a device list (the CPU twice: the blocks take turns, launched before
     any is read back, as on several GPUs) give the operators of one device, bit for bit."""
     import numpy as np
@@ -297,6 +297,20 @@ def test_assembly_over_several_devices_gives_the_same_operators():
     two = build_operators(shape, material, 0.01, devices=["cpu", "cpu"], **kw)
     for name in ("H", "G", "D", "Q", "H0_inv", "H0_inv_Gp", "Gp"):
         np.testing.assert_array_equal(getattr(two, name), getattr(one, name), err_msg=name)
+    # without a memory limit all rows fit one block; two devices still get a block each
+    from wsim.bem.assembly import LaplaceAssembler
+
+    seen: dict[int, set] = {}
+    plain = LaplaceAssembler.assemble
+
+    def spy(self, s, row0, rows, out):
+        seen.setdefault(id(self), set()).add((row0, rows))
+        return plain(self, s, row0, rows, out)
+
+    monkeypatch.setattr(LaplaceAssembler, "assemble", spy)
+    whole = build_operators(shape, material, 0.01, device="cpu", cache=False, n_max=4, devices=["cpu", "cpu"])
+    assert sorted(map(sorted, seen.values())) == [[(0, 21)], [(21, 21)]]  # 42 nodes, halved
+    np.testing.assert_allclose(whole.H, one.H, rtol=0, atol=1e-6 * np.abs(one.H).max())
     assert [d.alias for d in assembly_devices("cpu", None)] == ["cpu"]
     for bad in ("cuda:0,cuda:1", [], 3):
         with pytest.raises(InvalidParameter, match="devices"):
