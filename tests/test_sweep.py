@@ -31,6 +31,8 @@ def build(mesh=None, device=None, size=0.2, fail=False):
 
 
 def metrics(world):
+    if os.path.exists(os.path.join(os.path.dirname(__file__), "bad_metrics")):
+        raise RuntimeError("metrics broke")
     return {"height": float(world.bodies[0].points()[:, 1].mean())}
 '''
 
@@ -83,9 +85,28 @@ def test_sweep_in_process_reports_a_failure_and_skips_finished_variants(scene, t
     assert [r["metrics"] for r in again if r["status"] == "ok"] == [r["metrics"] for r in ok]
 
 
+def test_a_failing_metrics_fails_the_variant_and_a_changed_run_is_not_skipped(scene, tmp_path):
+    """The scene's own metrics are part of the variant: when they raise, the variant failed (and
+    runs again next time); a finished variant runs again when the frames asked for differ."""
+    out = tmp_path / "out"
+    (scene.parent / "bad_metrics").touch()
+    first = sweep(str(scene), {"size": [0.1]}, out, device="cpu", engine="local", warm=False, log=lambda s: None)
+    assert first[0]["status"] == "failed" and "metrics broke" in first[0]["error"]
+    (scene.parent / "bad_metrics").unlink()
+    ok = sweep(str(scene), {"size": [0.1]}, out, device="cpu", engine="local", warm=False, log=lambda s: None)
+    assert ok[0]["status"] == "ok" and len(_builds(scene)) == 2
+    sweep(str(scene), {"size": [0.1]}, out, device="cpu", engine="local", warm=False, log=lambda s: None)
+    assert len(_builds(scene)) == 2  # the same sweep: skipped
+    longer = sweep(str(scene), {"size": [0.1]}, out, device="cpu", frames=4, engine="local", warm=False,
+                   log=lambda s: None)
+    assert len(_builds(scene)) == 3 and longer[0]["frames"] == 4
+
+
 def test_sweep_refuses_a_parameter_the_scene_does_not_take(scene, tmp_path):
     with pytest.raises(InvalidParameter, match="no parameter 'resolution'.*size, fail"):
         sweep(str(scene), {"resolution": [8, 16]}, tmp_path / "out", engine="local", log=lambda s: None)
+    with pytest.raises(InvalidParameter, match="set by the sweep"):
+        sweep(str(scene), {"device": ["cpu"]}, tmp_path / "out", engine="local", log=lambda s: None)
     with pytest.raises(InvalidParameter, match="engine"):
         sweep(str(scene), {"size": [0.1]}, tmp_path / "out", engine="slurm", log=lambda s: None)
 
@@ -100,6 +121,7 @@ def test_sweep_command_line(scene, tmp_path, capsys):
     assert "tiny__size=0.1" in table and "tiny__size=0.2" in table
     assert main(["sweep", str(scene), "--param", "fail=True", "-o", str(out), "--engine", "local"]) == 1
     assert main(["sweep", str(scene), "--param", "nothing=1", "-o", str(out), "--engine", "local"]) == 2
+    assert main(["sweep", str(scene), "--param", "size=0.1", "--param", "size=0.2", "-o", str(out)]) == 2
 
 
 def test_sweep_through_ray_gives_the_in_process_metrics(scene, tmp_path):

@@ -138,10 +138,16 @@ def _load_scene(path: str) -> tuple[Callable[..., object], int, str]:
 
 
 def _sweep(args: argparse.Namespace) -> int:
+    from wsim.errors import InvalidParameter
     from wsim.sweep import parse_param, summary_table, sweep
 
     try:
-        params = dict(parse_param(p) for p in args.param)
+        pairs = [parse_param(p) for p in args.param]
+        names = [n for n, _ in pairs]
+        if len(set(names)) != len(names):
+            raise InvalidParameter(f"--param names one parameter twice ({', '.join(sorted({n for n in names if names.count(n) > 1}))}): "
+                                   "give all its values in one --param NAME=V1,V2")
+        params = dict(pairs)
         records = sweep(args.scene, params, args.out, device=args.device, frames=args.frames, engine=args.engine,
                         address=args.address, gpus_per_task=args.gpus_per_task)
     except WsimError as exc:

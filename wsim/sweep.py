@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import ast
 import contextlib
+import hashlib
 import inspect
 import itertools
 import json
@@ -71,7 +72,10 @@ def variants(params: dict[str, Sequence[Any]]) -> list[dict[str, Any]]:
 def variant_name(scene: str, params: dict[str, Any]) -> str:
     """A file-safe, stable name: ``scene__a=1__b=0.5`` (the scene's name alone without parameters)."""
     parts = [scene] + [f"{k}={v}" for k, v in params.items()]
-    return "__".join(_UNSAFE.sub("_", str(p)) for p in parts)
+    name = "__".join(_UNSAFE.sub("_", str(p)) for p in parts)
+    if len(name) > 150:  # file-name limits: a long list of values keeps a prefix and a digest of the rest
+        name = name[:130] + "__" + hashlib.sha256(name.encode()).hexdigest()[:16]
+    return name
 
 
 def load_scene(path: str | os.PathLike[str]) -> tuple[Callable[..., Any], int, str, Callable[..., dict] | None]:
@@ -91,6 +95,9 @@ def load_scene(path: str | os.PathLike[str]) -> tuple[Callable[..., Any], int, s
 
 def check_params(build: Callable[..., Any], scene: str, names: Sequence[str]) -> None:
     """Every swept name must be a keyword of ``build`` (unless it takes ``**kwargs``)."""
+    for n in names:
+        if n in ("mesh", "device"):
+            raise InvalidParameter(f"scene '{scene}': {n!r} is set by the sweep, not swept (--device, the scene's own mesh)")
     sig = inspect.signature(build)
     if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in sig.parameters.values()):
         return
@@ -136,36 +143,49 @@ def run_variant(scene_path: str, params: dict[str, Any], out_dir: str, device: s
     build, default_frames, scene, metrics = load_scene(scene_path)
     name = variant_name(scene, params)
     out = Path(out_dir)
-    record: dict[str, Any] = {"variant": name, "scene": scene, "params": params, "status": "failed"}
+    n = frames if frames is not None else default_frames
+    # what a re-run compares before it skips this variant (``_done``)
+    record: dict[str, Any] = {"variant": name, "scene": scene, "params": params, "status": "failed",
+                              "frames": n, "device_requested": device}
     t0 = time.perf_counter()
     try:
         with _no_progress():
             world = build(mesh=None, device=device, **params)
         t1 = time.perf_counter()
-        n = frames if frames is not None else default_frames
         world.run(n, out / f"{name}.usdc", progress=False)
         t2 = time.perf_counter()
+        measures = None if metrics is None else json.loads(json.dumps(metrics(world), default=str))
         dev = world.device
-        record.update(status="ok", frames=n, build_s=round(t1 - t0, 4), run_s=round(t2 - t1, 4),
+        record.update(build_s=round(t1 - t0, 4), run_s=round(t2 - t1, 4),
                       ms_per_frame=round(1e3 * (t2 - t1) / max(n, 1), 3), usd=str(out / f"{name}.usdc"),
                       device=dev.name if dev.is_cuda else "cpu",
+                      # high-water marks of the process: per variant in a Ray task, cumulative in-process
                       device_mem_high_mb=round(wp.get_mempool_used_mem_high(dev) / 2**20, 1) if dev.is_cuda else None)
-        if metrics is not None:
-            record["metrics"] = metrics(world)
+        if measures is not None:
+            record["metrics"] = measures
+        record["status"] = "ok"  # only once everything above, the scene's own metrics too, went through
     except Exception as exc:  # a variant's failure is data, not the sweep's end
-        record.update(error=f"{type(exc).__name__}: {exc}", traceback=traceback.format_exc(limit=6))
+        record.update(status="failed", error=f"{type(exc).__name__}: {exc}", traceback=traceback.format_exc(limit=6))
     record["wall_s"] = round(time.perf_counter() - t0, 4)
     record["host_rss_high_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
-    _write_json(out / f"{name}.json", record)
+    try:
+        _write_json(out / f"{name}.json", record)
+    except (OSError, TypeError, ValueError) as exc:  # e.g. parameters JSON cannot hold: reported, not raised
+        record = {k: record[k] for k in ("variant", "scene", "frames", "device_requested", "wall_s")}
+        record.update(status="failed", params={k: repr(v) for k, v in params.items()},
+                      error=f"the record could not be written: {type(exc).__name__}: {exc}")
     return record
 
 
-def _done(out: Path, name: str) -> dict | None:
+def _done(out: Path, name: str, params: dict[str, Any], frames: int, device: str | None) -> dict | None:
+    """The variant's record if a finished run of the same parameters, frames and device is on disk."""
     try:
         record = json.loads((out / f"{name}.json").read_text())
     except (OSError, ValueError):
         return None
-    return record if record.get("status") == "ok" else None
+    same = (record.get("params") == json.loads(json.dumps(params, default=str)) and record.get("frames") == frames
+            and record.get("device_requested") == device)
+    return record if record.get("status") == "ok" and same else None
 
 
 def _warm(scene_path: str, params: dict[str, Any], device: str | None) -> float:
@@ -203,10 +223,20 @@ def _ray_tasks(ray: Any, todo: list[dict[str, Any]], scene_path: str, out_dir: s
     gpus = ray.cluster_resources().get("GPU", 0.0)
     want_gpu = gpus > 0 and device not in ("cpu",)
     options = {"num_gpus": gpus_per_task, "num_cpus": 1} if want_gpu else {"num_cpus": 1}
-    task = ray.remote(max_calls=1)(run_variant).options(**options)  # a fresh worker process per task
+    # a fresh worker process per task, not retried: a variant that kills its worker (a crash, out
+    # of memory) would do it again
+    task = ray.remote(max_calls=1, max_retries=0)(run_variant).options(**options)
     # Ray gives each GPU task its own CUDA_VISIBLE_DEVICES: inside, the GPU is cuda:0
     task_device = "cuda:0" if want_gpu else "cpu"
-    return ray.get([task.remote(scene_path, p, out_dir, task_device, frames) for p in todo])
+    refs = [task.remote(scene_path, p, out_dir, task_device, frames) for p in todo]
+    records = []
+    for p, ref in zip(todo, refs):
+        try:
+            records.append(ray.get(ref))
+        except Exception as exc:  # the worker died: the variant failed, the others go on
+            records.append({"variant": variant_name(Path(scene_path).stem, p), "params": p, "status": "failed",
+                            "error": f"its worker died: {type(exc).__name__}: {exc}"[:2000]})
+    return records
 
 
 def sweep(scene_path: str, params: dict[str, Sequence[Any]], out_dir: str | os.PathLike[str], *,
@@ -219,7 +249,7 @@ def sweep(scene_path: str, params: dict[str, Sequence[Any]], out_dir: str | os.P
         raise InvalidParameter(f"sweep engine {engine!r}: one of {', '.join(ENGINES)}")
     if not gpus_per_task > 0:
         raise InvalidParameter(f"gpus_per_task = {gpus_per_task}: must be > 0 (e.g. 0.25 for four small scenes a GPU)")
-    build, _, scene, _ = load_scene(scene_path)
+    build, default_frames, scene, _ = load_scene(scene_path)
     check_params(build, scene, list(params))
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -227,7 +257,8 @@ def sweep(scene_path: str, params: dict[str, Sequence[Any]], out_dir: str | os.P
     names = [variant_name(scene, p) for p in allv]
     if len(set(names)) != len(names):
         raise InvalidParameter(f"scene '{scene}': two variants would share a file name; give distinct values")
-    done = {n: r for n, r in ((n, _done(out, n)) for n in names) if r is not None}
+    n_frames = frames if frames is not None else default_frames
+    done = {n: r for n, r in ((n, _done(out, n, p, n_frames, device)) for n, p in zip(names, allv)) if r is not None}
     todo = [p for p, n in zip(allv, names) if n not in done]
     if done:
         say(f"wsim sweep: {len(done)} of {len(allv)} variants already done in {out}, skipped")
@@ -244,7 +275,7 @@ def sweep(scene_path: str, params: dict[str, Sequence[Any]], out_dir: str | os.P
     scene_abs = str(Path(scene_path).resolve())
     fresh: dict[str, dict] = {}
     if todo:
-        if warm:
+        if warm and use_ray:  # in-process, the first variant compiles them for the rest
             say(f"wsim sweep: compiling the scene's kernels once ({_warm(scene_abs, todo[0], device):.1f} s)")
         t = time.perf_counter()
         if use_ray:

@@ -20,6 +20,7 @@ factors, D_k, Q_k, A and C stay float64. The set is cached by content hash throu
 from __future__ import annotations
 
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -277,10 +278,16 @@ def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: st
     wp_dtype = wp.float32 if dtype == np.float32 else wp.float64
     D = np.zeros((n_max + 1, 3 * n, 3))
     Q = np.zeros_like(D)
-    rows = min(_rows_per_block(a.device, n, n_max, memory_limit) for a in assemblers)
-    # at least one block a device: on two H200s the bunny's 3485 rows fit one block, which the
-    # first device then assembled alone (4.24 s on one GPU and on "two", the first measurement)
-    rows = min(rows, -(-n // len(assemblers)))
+    # a device named twice shares its memory between its two sets of buffers
+    shares = Counter(a.device.alias for a in assemblers)
+    rows = max(1, min(_rows_per_block(a.device, n, n_max, memory_limit) // shares[a.device.alias] for a in assemblers))
+    # a multiple of the device count of blocks, so no device idles in the last batch, and at least
+    # one block each: on two H200s all 3485 rows of the bunny fitted one block, and the first
+    # measurement gave 4.24 s of assembly on one GPU and on "two"
+    k = len(assemblers)
+    n_blocks = -(-n // rows)  # the blocks the memory needs,
+    n_blocks = -(-n_blocks // k) * k  # rounded up to a multiple of the devices
+    rows = -(-n // n_blocks)
     blocks = [(r0, min(rows, n - r0)) for r0 in range(0, n, rows)]
     cols = 3 * n
     # host results in page-locked memory on CUDA: device -> host copies at full PCIe/NVLink speed
