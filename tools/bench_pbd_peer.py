@@ -205,7 +205,7 @@ def main() -> None:
     ap.add_argument("--friction", type=float, default=0.5)
     ap.add_argument("--fps", type=float, default=60.0)
     ap.add_argument("--frames", type=int, default=30)
-    ap.add_argument("--sweep", default="5x1,10x1,20x1,40x1,80x1,10x2,20x2,40x2,80x2,20x5")
+    ap.add_argument("--sweep", default="5x1,10x1,20x1,30x1,40x1,80x1,10x2,15x2,20x2,40x2,80x2,20x5")
     ap.add_argument("--reference", default="80x40")
     ap.add_argument("--levels", default="0.005,0.01,0.025,0.05")
     ap.add_argument("--solvers", default="wsim,newton")
