@@ -11,12 +11,13 @@ Engines: Ray (the optional ``cluster`` extra) when it is installed, one GPU a ta
 (``gpus_per_task`` below 1 packs small scenes onto a GPU; CPU tasks where no GPU exists), locally
 (``ray.init()``) or on a cluster (``address``); each task runs in a fresh worker process. Without
 Ray, or with ``engine="local"``, the variants run one after another in this process, which says
-so. Before any task starts, the first variant's World is built and stepped one frame here, so
+so. Before Ray's tasks start, the first variant's World is built and stepped one frame here, so
 Warp's kernels are compiled once into its on-disk cache (shared by the processes of one host;
 point ``WARP_CACHE_PATH`` at shared storage on a cluster) instead of once per task.
 
-A variant that raises is reported (status "failed", the error) and the others finish; a variant
-whose JSON says "ok" is skipped when the same sweep runs again. Results are written atomically:
+A variant that raises (or whose metrics do, or whose Ray worker dies) is reported (status
+"failed", the error) and the others finish; a variant whose JSON says "ok" for the same
+parameters, frames and device is skipped when the sweep runs again. Results are written atomically:
 ``DIR/<variant>.json`` per variant and ``DIR/sweep.jsonl`` (all of them) at the end.
 """
 
