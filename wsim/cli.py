@@ -28,8 +28,8 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from wsim.errors import WsimError
+from wsim.scene import DEFAULT_FRAMES
 
-DEFAULT_FRAMES = 90
 
 
 def _add_run_options(p: argparse.ArgumentParser) -> None:
@@ -128,7 +128,7 @@ def _mtime(path: str) -> int | None:
 
 
 def _load_scene(path: str) -> tuple[Callable[..., object], int, str]:
-    from wsim.sweep import load_scene
+    from wsim.scene import load_scene
 
     try:
         build, frames, name, _ = load_scene(path)

@@ -32,7 +32,6 @@ import json
 import os
 import re
 import resource
-import runpy
 import sys
 import tempfile
 import time
@@ -42,6 +41,7 @@ from typing import Any, Callable, Iterator, Sequence
 
 from wsim.errors import InvalidParameter
 from wsim.progress import PROGRESS_ENV
+from wsim.scene import load_scene
 
 ENGINES = ("auto", "local", "ray")
 _UNSAFE = re.compile(r"[^A-Za-z0-9_.=+-]+")
@@ -77,21 +77,6 @@ def variant_name(scene: str, params: dict[str, Any]) -> str:
     if len(name) > 150:  # file-name limits: a long list of values keeps a prefix and a digest of the rest
         name = name[:130] + "__" + hashlib.sha256(name.encode()).hexdigest()[:16]
     return name
-
-
-def load_scene(path: str | os.PathLike[str]) -> tuple[Callable[..., Any], int, str, Callable[..., dict] | None]:
-    """(build, FRAMES, name, metrics or None) of a scene file."""
-    from wsim.cli import DEFAULT_FRAMES
-
-    p = Path(path)
-    if not p.is_file():
-        raise InvalidParameter(f"scene file '{path}' not found")
-    ns = runpy.run_path(str(p), run_name="wsim_scene")
-    build = ns.get("build")
-    if not callable(build):
-        raise InvalidParameter(f"scene '{path}' must define build(mesh=None, device=None, **params) -> wsim.World")
-    metrics = ns.get("metrics")
-    return build, int(ns.get("FRAMES", DEFAULT_FRAMES)), p.stem, metrics if callable(metrics) else None
 
 
 def check_params(build: Callable[..., Any], scene: str, names: Sequence[str]) -> None:

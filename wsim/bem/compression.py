@@ -35,6 +35,7 @@ from typing import Any, Sequence
 import numpy as np
 import scipy.sparse as sp
 
+from wsim.bem.operators import fold_frame_terms
 from wsim.errors import InvalidParameter
 
 ORDERINGS = ("none", "v", "c", "v+c")
@@ -490,13 +491,9 @@ class CompressedHistory:
 
 
 def folded_G(ops, k: int) -> np.ndarray:
-    """G'_k = G_k + D_k A + Q_k C (3N, 3N, G_k's precision): G_k with the frame acceleration its
-    traction causes folded in (``CompressedHistory``; k = 0 gives the operators' G'). The rank-6
-    term is added in row blocks (no second 3N x 3N temporary: 7 GB at N = 10088)."""
-    out = np.array(ops.G[k])
-    for r in range(0, out.shape[0], 4096):
-        out[r: r + 4096] += ops.D[k][r: r + 4096] @ ops.A + ops.Q[k][r: r + 4096] @ ops.C
-    return out
+    """G'_k = G_k + D_k A + Q_k C (3N, 3N, G_k's precision; ``CompressedHistory``; k = 0 gives the
+    operators' G'), on a copy of G_k (``operators.fold_frame_terms``)."""
+    return fold_frame_terms(np.array(ops.G[k]), ops.D[k], ops.Q[k], ops.A, ops.C)
 
 
 def rigid_fold(ops, B: np.ndarray, P: np.ndarray) -> np.ndarray:

@@ -139,6 +139,17 @@ def surface_diameter(points: np.ndarray) -> float:
     return best
 
 
+def fold_frame_terms(G: np.ndarray, D: np.ndarray, Q: np.ndarray, A: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """G + D A + Q C in G's own buffer (returned): G_k with the frame acceleration its traction
+    causes folded in (Eq. 10: a_ext = A p, alpha_ext = C p). k = 0 gives G'; the compressed sets
+    store G'_k (``compression.folded_G``). In row blocks: the expression's full-size temporaries
+    (875 MB each for the bunny, 7 GB at N = 10088, faulted in fresh) cost more than the sums."""
+    DQ, AC = np.concatenate([D, Q], axis=1), np.concatenate([A, C], axis=0)
+    for r0 in range(0, G.shape[0], 1024):
+        G[r0:r0 + 1024] += DQ[r0:r0 + 1024] @ AC
+    return G
+
+
 def assembly_devices(device: Any = None, devices: Any = None) -> list[wp.Device]:
     """The devices a build spreads its row blocks over: ``devices`` = None (``device`` alone),
     "all" (every CUDA device; the CPU without one) or a list (a device may repeat: its blocks then
@@ -301,10 +312,13 @@ def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: st
     t_assembly = t_transfer = 0.0
     bar = tqdm(total=len(blocks) * len(s_l), desc="BEM operators", unit="sample", disable=not show_progress(progress))
     work = []  # per device: its assembler, row block buffers and accumulators (H_k: rows k 3 rows ..)
+    weights = {}  # the CQ weights of each sample, real and imaginary, on each device (uploaded once)
     for a in assemblers:
         acc_H = wp.zeros(((n_max + 1) * 3 * rows, cols), dtype=wp.float64, device=a.device)
         work.append((a, a.block(rows), acc_H, wp.zeros_like(acc_H),
                      wp.empty(acc_H.shape, dtype=wp.float32, device=a.device) if wp_dtype == wp.float32 else None))
+        weights[a.device.alias] = [tuple(wp.array(np.ascontiguousarray(part), dtype=wp.float64, device=a.device)
+                                         for part in (w.real, w.imag)) for w in W]
     for first in range(0, len(blocks), len(work)):
         # one block a device at a time, all launched before any is read: the devices run together
         batch = list(zip(work, blocks[first:first + len(work)]))
@@ -315,8 +329,7 @@ def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: st
         for l, s in enumerate(s_l):
             for (a, block, acc_H, acc_G, _), (r0, nr) in batch:
                 a.assemble(complex(s), r0, nr, block)
-                w_re = wp.array(W[l].real.copy(), dtype=wp.float64, device=a.device)
-                w_im = wp.array(W[l].imag.copy(), dtype=wp.float64, device=a.device)
+                w_re, w_im = weights[a.device.alias][l]
                 wp.launch(ka.cq_accumulate, dim=(3 * nr, cols), inputs=[block.H_re, block.H_im, w_re, w_im, acc_H],
                           device=a.device)
                 wp.launch(ka.cq_accumulate, dim=(3 * nr, cols), inputs=[block.G_re, block.G_im, w_re, w_im, acc_G],
@@ -350,12 +363,7 @@ def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: st
     timings["assembly"] = t_assembly
     timings["transfer"] = t_transfer
     t3 = time.perf_counter()
-    # G' = G_0 + D_0 A + Q_0 C in G_0's buffer, in row blocks: the expression's three temporaries
-    # of the full size (875 MB each for the bunny, faulted in fresh) cost more than the sums
-    Gp = G0
-    DQ, AC = np.concatenate([D[0], Q[0]], axis=1), np.concatenate([A, C], axis=0)
-    for r0 in range(0, cols, 1024):
-        Gp[r0:r0 + 1024] += DQ[r0:r0 + 1024] @ AC
+    Gp = fold_frame_terms(G0, D[0], Q[0], A, C)  # G' = G_0 + D_0 A + Q_0 C, in G_0's buffer
     del G0, G0_host  # Gp keeps the buffer (a numpy view holds its Warp array)
     backend = factorization_backend(factorization, dev.is_cuda)
     lu, H0_inv, H0_inv_Gp = factorize(H0, Gp, backend, dev.ordinal if dev.is_cuda else 0, dtype)

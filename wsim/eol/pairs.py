@@ -209,7 +209,7 @@ def assemble(records: list[tuple[int, np.ndarray, np.ndarray]], pairs: list[tupl
             key = row[idx] * n_grid + base
             order = np.argsort(key, kind="stable")
             starts = np.flatnonzero(np.concatenate([[True], key[order][1:] != key[order][:-1]]))
-            first = order[starts]
+            head = order[starts]  # each (row, cell) group's first sample
             wts = rf[idx, 8 * col:8 * col + 8]
             cq = sign * (c[idx] @ info.Q)  # world -> velocity axes: Q^T c
             per_sample = np.concatenate([(wts[:, :, None] * cq[:, None, :]).reshape(-1, 24),
@@ -217,9 +217,9 @@ def assemble(records: list[tuple[int, np.ndarray, np.ndarray]], pairs: list[tupl
             per_cell = np.add.reduceat(per_sample[order], starts, axis=0)
             J_cell, G_cell = per_cell[:, :24].reshape(-1, 8, 3), per_cell[:, 24:32]
             k = np.nonzero(per_cell[:, 32:] > 0.0)  # the corners with material (weights are >= 0)
-            rows.append(row[idx[first]][k[0]])
-            nodes.append((base[first][:, None] + offsets[None, :])[k])
-            mass.append(rf[idx[first], 16 + 8 * col:24 + 8 * col][k])
+            rows.append(row[idx[head]][k[0]])
+            nodes.append((base[head][:, None] + offsets[None, :])[k])
+            mass.append(rf[idx[head], 16 + 8 * col:24 + 8 * col][k])
             coeff.append(J_cell[k])
             slip.append(G_cell[k])
         rows_, nodes_ = np.concatenate(rows), np.concatenate(nodes)
