@@ -89,3 +89,18 @@ def solve_matvec(
             c += stride
     total = wp.tile_sum(wp.tile(acc))
     wp.tile_store(u, total, offset=row)
+
+
+@wp.kernel
+def write_ring_rows(
+    src: wp.array2d(dtype=Any),
+    rows: wp.array(dtype=wp.int32),
+    slots: wp.array(dtype=wp.int32),
+    ring: wp.array3d(dtype=Any),
+):
+    """ring[rows[i], slots[i], j] = src[rows[i], j]: the bodies of an instance set store their
+    step's u, p or [a - g', alpha] (the rings of Eq. 9) in one launch (``wsim.bem.instances``).
+    Launch with dim = (len(rows), src.shape[1])."""
+    i, j = wp.tid()
+    r = rows[i]
+    ring[r, slots[i], j] = src[r, j]

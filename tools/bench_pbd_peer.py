@@ -21,8 +21,9 @@ converged run), a JSON line (``--wsim-solver gauss_seidel,jacobi`` runs both of 
 the error - the largest particle distance at the last frame from the same solver's reference
 run, over the grid's bounding-box diagonal - and a physical check (finite, the extent at most 3x
 the initial one, nothing below the ground by more than a cell): a run that fails it has no
-error and is never "fastest". The last line, per error level in ``--levels``, each solver's
-fastest setting reaching it and the speed ratio. Without Newton (the optional ``bench`` extra:
+error and is never "fastest". Then, per error level in ``--levels``, each solver's
+fastest setting reaching it and the speed ratio, and a last line with the worst ratio over every
+level between the first and the last of ``--levels`` (where both solvers reach it). Without Newton (the optional ``bench`` extra:
 ``pip install "wsim[bench]"``) the wsim half runs and the Newton half says it was skipped.
 """
 
@@ -205,7 +206,7 @@ def main() -> None:
     ap.add_argument("--friction", type=float, default=0.5)
     ap.add_argument("--fps", type=float, default=60.0)
     ap.add_argument("--frames", type=int, default=30)
-    ap.add_argument("--sweep", default="5x1,10x1,20x1,30x1,40x1,80x1,10x2,15x2,20x2,40x2,80x2,20x5")
+    ap.add_argument("--sweep", default="5x1,10x1,20x1,25x1,30x1,40x1,50x1,60x1,80x1,10x2,15x2,20x2,40x2,60x2,80x2,20x5")
     ap.add_argument("--reference", default="80x40")
     ap.add_argument("--levels", default="0.005,0.01,0.025,0.05")
     ap.add_argument("--solvers", default="wsim,newton")
@@ -287,6 +288,23 @@ def main() -> None:
             entry["newton_over_wsim_time"] = best["newton"]["ms_per_frame"] / best["wsim"]["ms_per_frame"]
         summary.append(entry)
     emit(summary=summary)
+    if rows.get("wsim") and rows.get("newton"):
+        # every level between the first and last of --levels: each solver's fastest setting changes
+        # only at an error some run reached, so those errors (and the range's start) are all the
+        # levels there are to check
+        levels = [float(x) for x in args.levels.split(",")]
+        lo, hi = min(levels), max(levels)
+        seen = {r["error"] for rs in rows.values() for r in rs if r.get("error") is not None and lo <= r["error"] <= hi}
+        worst = None
+        for level in sorted(seen | {lo}):
+            w, n = fastest(rows["wsim"], level), fastest(rows["newton"], level)
+            if w and n and (worst is None or n["ms_per_frame"] / w["ms_per_frame"] < worst[0]):
+                worst = (n["ms_per_frame"] / w["ms_per_frame"], level, w, n)
+        if worst is not None:
+            ratio, level, w, n = worst
+            emit(range=[lo, hi], worst_newton_over_wsim_time=ratio, from_error_level=level,
+                 wsim={k: w[k] for k in ("substeps", "iterations", "ms_per_frame", "error")},
+                 newton={k: n[k] for k in ("substeps", "iterations", "ms_per_frame", "error")})
 
 
 if __name__ == "__main__":

@@ -267,10 +267,30 @@ def solve_group(bodies: Sequence[Any], joints: Sequence[tuple[Any, PointRefs, An
 
     for pair in pairs:
         parent[find(slot[id(pair[0])])] = find(slot[id(pair[2])])
+    free = []  # bodies nothing holds or touches this step: a free step, finished together below
     for root in sorted({find(k) for k in range(len(sides))}):
         members = [s for k, s in enumerate(sides) if find(k) == root]
         linked = [p for p in pairs if find(slot[id(p[0])]) == root]
+        if not linked and len(members) == 1 and not len(members[0].own):
+            free.append(members[0])
+            continue
         _solve_component(members, linked, device, tol, max_iter, step, refinements)
+    _end_free(free)
+
+
+def _end_free(sides: list[_Side]) -> None:
+    """``constraint_end`` with no points for ``sides``; a body type with ``constraint_end_free``
+    ends its bodies together (BEM bodies on one operator set correct as one stack)."""
+    by_type: dict[type, list[_Side]] = {}
+    for s in sides:
+        by_type.setdefault(type(s.body), []).append(s)
+    for cls, group in by_type.items():
+        together = getattr(cls, "constraint_end_free", None)
+        if together is not None:
+            together([s.body for s in group], [s.own for s in group])
+            continue
+        for s in group:
+            s.body.constraint_end(s.own, np.zeros((0, 3)), np.zeros(0, dtype=np.int32), None)
 
 
 def _solve_component(sides: list[_Side], pairs: list, device: wp.Device, tol: float, max_iter: int, step: int,

@@ -70,10 +70,13 @@ def rotation_vector(R: np.ndarray) -> np.ndarray:
 
 
 def nearest_rotation(m: np.ndarray) -> np.ndarray:
-    """The rotation closest to m in the Frobenius norm (polar factor, det = +1)."""
+    """The rotation closest to m in the Frobenius norm (polar factor, det = +1); m may be a stack
+    (..., 3, 3)."""
     u, _, vt = np.linalg.svd(m)
-    d = np.sign(np.linalg.det(u @ vt)) or 1.0
-    return u @ np.diag([1.0, 1.0, d]) @ vt
+    d = np.where(np.linalg.det(u @ vt) < 0.0, -1.0, 1.0)
+    u = u.copy()
+    u[..., :, 2] *= d[..., None]  # u diag(1, 1, d) vt
+    return u @ vt
 
 
 def advance_pose(R: np.ndarray, T: np.ndarray, velocity: np.ndarray, omega: np.ndarray,

@@ -121,6 +121,8 @@ class World:
                                        f"into whole intervals")
             self.coupling_steps = k
         self._groups: list[tuple[list[Body], list]] = []  # bodies stepped together, their joints as points
+        self._group_sets: list[list] = []  # per group, its BEM instance sets (``wsim.bem.instances``)
+        self._sets: list = []  # the instance sets of bodies in no group
         self.timings: dict[str, float] = {}  # seconds per stage: each method's stepping, "coupling"
         self.profile = False  # synchronize the device after each stage (``timings`` then splits GPU time)
 
@@ -219,6 +221,11 @@ class World:
                         by_dt.setdefault(round(float(b.dt), 15), []).append(b)
                 links = [(g[0], b) for g in by_dt.values() for b in g[1:]]
             self._groups = _joint_groups(self.joints, links)
+            # bodies on one operator set stream its matrices once a step for all (BEM instances): a
+            # set within each group, and one of the bodies no group steps
+            grouped = {id(b) for bodies, _ in self._groups for b in bodies}
+            self._group_sets = [_instance_sets(bodies) for bodies, _ in self._groups]
+            self._sets = _instance_sets([b for b in self.bodies if id(b) not in grouped])
             self._index = {id(b): i for i, b in enumerate(self.bodies)}  # a body's key in the exchange
             self._bound = True
 
@@ -276,11 +283,15 @@ class World:
             self._timed("coupling", lambda: start.update({id(b): b.points() for b in self._pushed}))
         g = float(np.linalg.norm(self.gravity))
         # bodies that push nothing go first (their surfaces are then known over the interval) ...
+        in_set = {id(b): s for s in self._sets for b in s.bodies}
         for body in self.bodies:
             if id(body) not in grouped and id(body) not in late and (self.coupling_steps == 1 or _couples(body)):
-                self._timed(_stage(body), body.advance, t0, t1)
-        for bodies, joints in self._groups:
-            self._timed("bem", _advance_group, bodies, joints, t1, self.device, self.body_contact)
+                if id(body) not in in_set:
+                    self._timed(_stage(body), body.advance, t0, t1)
+                elif body is in_set[id(body)].bodies[0]:  # the set steps its bodies together
+                    self._timed(_stage(body), in_set[id(body)].advance, t1)
+        for (bodies, joints), sets in zip(self._groups, self._group_sets):
+            self._timed("bem", _advance_group, bodies, joints, t1, self.device, self.body_contact, sets)
         end: dict[int, np.ndarray] = {}  # each target's points at the interval's end (read once per interval)
         # ... then the EoL bodies, those that may touch in one group each, after the BEM bodies they push ...
         if self._eol:
@@ -420,16 +431,25 @@ def _joint_groups(joints: Sequence[wc.PointJoint], links: Sequence[tuple[Body, B
     return list(groups.values())
 
 
-def _advance_group(bodies: list[Body], joints: list, t1: float, device, contact: bool) -> None:
+def _advance_group(bodies: list[Body], joints: list, t1: float, device, contact: bool, sets: Sequence = ()) -> None:
     """Step joined or touching bodies together to the nearest multiple of their dt to t1, one
-    solve per step (with contact between them when ``contact``)."""
+    solve per step (with contact between them when ``contact``); ``sets``: members that share an
+    operator set (``wsim.bem.instances``), predicted together before each solve."""
     dt = bodies[0].dt
     target = int(math.floor(t1 / dt + 0.5))
     tol = min(b.constraint_tolerance for b in bodies)
     iterations = max(b.constraint_iterations for b in bodies)
     margin = min(b.contact_distance for b in bodies) if contact else None
     while bodies[0].steps < target and not any(b.failed for b in bodies):
+        for s in sets:
+            s.predict(s.bodies)
         wc.solve_group(bodies, joints, device, tol, iterations, bodies[0].steps + 1, contact_margin=margin)
+
+
+def _instance_sets(bodies: Sequence[Body]) -> list:
+    """The instance sets of the bodies that have them (BEM: ``BemBody.instance_sets``)."""
+    with_sets = [b for b in bodies if hasattr(b, "instance_sets")]
+    return type(with_sets[0]).instance_sets(with_sets) if len(with_sets) > 1 else []
 
 
 def _couple_surfaces(pusher: Body, targets: Sequence[Body], index: dict[int, int], start: dict[int, np.ndarray],

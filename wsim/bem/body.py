@@ -446,6 +446,8 @@ class BemBody(VertexImpulses, Body):
         self._U_k, self._P_k, self._p_k, self._h_k = (view(self.state.U), view(self.state.P), view(self._p),
                                                       view(self._h))
         self._p_live = False
+        self._predicted: tuple | None = None  # (step, u, a_ext, alpha_ext) from the body's ``Instances`` set
+        self._set = None  # that set (``wsim.bem.instances``), once the World forms it
         # host staging (page-locked on CUDA, so the per-step copies are direct DMA)
         pinned = device.is_cuda
         self._u_out = wp.zeros(so.pitch, dtype=so.dtype, device="cpu", pinned=pinned)
@@ -468,6 +470,7 @@ class BemBody(VertexImpulses, Body):
         # the traction buffer is scratch: cleared, so an unloaded next step needs nothing from it
         self._p.zero_()
         self._p_live = False
+        self._predicted = None
         self._failure = None
 
     def signature(self) -> dict:
@@ -761,6 +764,30 @@ class BemBody(VertexImpulses, Body):
     def constraint_end(self, points: wc.PointRefs, forces: np.ndarray, kind: np.ndarray,
                        record: wc.SolveRecord | None) -> None:
         """Apply the point forces as tractions and finish the step (``_finish_step``)."""
+        u, a_ext, alpha_ext = self._close_constraints(points, forces, kind, record)
+        # a step nothing held or touched is a free step: the paper's correction, as without colliders
+        self._finish_step(u, a_ext, alpha_ext, time.perf_counter(), correct=not len(points))
+
+    @staticmethod
+    def constraint_end_free(bodies: Sequence[BemBody], points: Sequence[wc.PointRefs]) -> None:
+        """``constraint_end`` of bodies nothing held or touched this step (``points``: their empty
+        point lists): members of one instance set finish together (``Instances.finish_free``)."""
+        by_set: dict[int, tuple[Any, list, list]] = {}
+        for b, pts in zip(bodies, points):
+            got = b._close_constraints(pts, np.zeros((0, 3)), np.zeros(0, dtype=np.int32), None)
+            if b._set is not None and b.frame_update and b.error_correction:
+                entry = by_set.setdefault(id(b._set), (b._set, [], []))
+                entry[1].append(b)
+                entry[2].append(got)
+            else:
+                b._finish_step(*got, time.perf_counter())
+        for members_set, members, got in by_set.values():
+            members_set.finish_free(members, got)
+
+    def _close_constraints(self, points: wc.PointRefs, forces: np.ndarray, kind: np.ndarray,
+                           record: wc.SolveRecord | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The point forces as tractions and the solve's records: (u, a_ext, alpha_ext) for
+        ``_finish_step``."""
         t0 = time.perf_counter()
         st, so, cs = self.state, self._so, self._cs
         u, a_ext, alpha_ext = cs["u"], cs["a_ext"], cs["alpha_ext"]
@@ -789,8 +816,7 @@ class BemBody(VertexImpulses, Body):
                                   f"> tol {self.constraint_tolerance:.3g} m (see body.constraint_history)", RuntimeWarning, stacklevel=4)
         self._cs = None
         self._tick("constraints", t0)
-        # a step nothing held or touched is a free step: the paper's correction, as without colliders
-        self._finish_step(u, a_ext, alpha_ext, time.perf_counter(), correct=not len(points))
+        return u, a_ext, alpha_ext
 
     @property
     def constraint_tolerance(self) -> float:
@@ -844,41 +870,73 @@ class BemBody(VertexImpulses, Body):
     def unconstrained_solve(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The paper's UNCNST stage of the coming step: history, loads and Eq. (12), without
         changing any state. Returns (u_n float64, a_ext, alpha_ext)."""
+        predicted, self._predicted = self._predicted, None
+        if predicted is not None and predicted[0] == self.steps:  # computed with its set (``wsim.bem.instances``)
+            return predicted[1], predicted[2], predicted[3]
         so = self._so
         n3 = so.size
-        self._loaded_now = False
-        t = (self.steps + 1) * self.dt
         t0 = time.perf_counter()
         # the history needs only past steps: launch it first, so the host evaluates the loads
         # while the device streams the matrices
         stepper.history(so, self._U_k, self._P_k, self.state.B, self.state.ring, self._h, self._scratch)
         t0 = self._tick("history", t0)
-        p = self._tractions(t) if self._loads else None
-        has_p = p is not None and bool(np.any(p))
-        self._p_loads = p if has_p else None
-        ops = so.operators
-        a_ext, alpha_ext = (ops.A @ p, ops.C @ p) if has_p else (np.zeros(3), np.zeros(3))
-        if has_p:
-            self._loaded_now = True
-            self._p_in.numpy()[:n3] = p
-            wp.copy(self._p, self._p_in, count=n3)
-            self._p_live = True
-        elif self._p_live:
-            self._p.zero_()
-            self._p_live = False
+        a_ext, alpha_ext = self._step_loads()
         t0 = self._tick("loads", t0)
-        stepper.solve(so, self._p_k if has_p else None, self._h_k, self._u_dev, self._scratch)
+        stepper.solve(so, self._p_k if self._p_loads is not None else None, self._h_k, self._u_dev, self._scratch)
         wp.copy(self._u_out, self._u_dev, count=n3)
         wp.synchronize_device(self._device)
         u = self._u_out.numpy()[:n3].astype(np.float64)
         self._tick("solve", t0)
         return u, a_ext, alpha_ext
 
+    def _step_loads(self) -> tuple[np.ndarray, np.ndarray]:
+        """The coming step's tractions p_n into the device vector (zeroed when there are none) and
+        (a_ext, alpha_ext) = (A p_n, C p_n) (Eq. 10)."""
+        so = self._so
+        n3 = so.size
+        self._loaded_now = False
+        t = (self.steps + 1) * self.dt
+        p = self._tractions(t) if self._loads else None
+        has_p = p is not None and bool(np.any(p))
+        self._p_loads = p if has_p else None
+        ops = so.operators
+        if has_p:
+            self._loaded_now = True
+            self._p_in.numpy()[:n3] = p
+            wp.copy(self._p, self._p_in, count=n3)
+            self._p_live = True
+            return ops.A @ p, ops.C @ p
+        if self._p_live:
+            self._p.zero_()
+            self._p_live = False
+        return np.zeros(3), np.zeros(3)
+
+    def _adopt_rings(self, U: wp.array, P: wp.array, B: wp.array, p: wp.array, h: wp.array, u: wp.array) -> None:
+        """Move the rings and step vectors into the given arrays (rows of an ``Instances`` set's
+        stacked ones), contents kept; every view is rebuilt on them."""
+        st = self.state
+        for new, old in ((U, st.U), (P, st.P), (B, st.B), (p, self._p), (h, self._h), (u, self._u_dev)):
+            wp.copy(new, old)
+        st.U, st.P, st.B, self._p, self._h, self._u_dev = U, P, B, p, h, u
+        view = stepper.vec4_view if self._so.backend == "warp" else (lambda a: a)
+        self._U_k, self._P_k, self._p_k, self._h_k = view(st.U), view(st.P), view(self._p), view(self._h)
+
+    @staticmethod
+    def instance_sets(bodies: Sequence[BemBody]) -> list:
+        """Bodies of ``bodies`` on one operator set, as sets that step their passes together
+        (``wsim.bem.instances``); bodies of no set are not listed."""
+        from wsim.bem.instances import instance_sets
+
+        return instance_sets(bodies)
+
     def _finish_step(self, u: np.ndarray, a_ext: np.ndarray, alpha_ext: np.ndarray, t0: float,
-                     correct: bool = True) -> None:
+                     correct: bool = True, corrected: tuple | None = None, write_rings: bool = True) -> np.ndarray:
         """Error correction, ring update and frame update of the step (the paper's ERRCR). With
         ``correct`` False (a constrained step) the drift moves to the frame's pose instead of its
-        acceleration (``Correction.drift``)."""
+        acceleration (``Correction.drift``). ``corrected``: (da, dalpha, u) of ``Correction.apply``
+        already computed (an ``Instances`` set corrects its bodies together); ``write_rings``
+        False leaves the ring rows of this step to the caller (the set writes them together).
+        Returns [a - g', alpha], the step's row of the B ring."""
         st = self.state
         so, f = self._so, st.frame
         n3 = so.size
@@ -887,7 +945,9 @@ class BemBody(VertexImpulses, Body):
         if self.frame_update:
             da = dalpha = np.zeros(3)
             transfer = None
-            if self.error_correction and correct and finite:
+            if corrected is not None:
+                da, dalpha, u = corrected
+            elif self.error_correction and correct and finite:
                 da, dalpha, u = so.correction.apply(u)
             elif self.error_correction and finite:  # a constrained step: the drift goes to the pose (see ``step``)
                 *transfer, u = so.correction.drift(u)
@@ -897,15 +957,16 @@ class BemBody(VertexImpulses, Body):
             b = np.concatenate([-g_body, np.zeros(3)])
             u = u + so.E @ np.concatenate([-(a_ext + g_body), -alpha_ext])
         t0 = self._tick("correction", t0)
-        slot = st.ring % so.n_max
-        self._u_in.numpy()[:n3] = u
-        self._b_in.numpy()[:] = b
-        wp.copy(st.U, self._u_in, dest_offset=slot * so.pitch, count=n3)
-        wp.copy(st.P, self._p, dest_offset=slot * so.pitch, count=n3)
-        wp.copy(st.B, self._b_in, dest_offset=slot * 6, count=6)
-        if self._scratch is not None:  # the frame terms that go with the stored G'_k (``compression.folded_G``)
-            self._bf_in.numpy()[:] = b - np.concatenate([a_ext, alpha_ext])
-        stepper.ring_written(so, self._U_k, self._P_k, slot, self._scratch, self._bf_in)
+        if write_rings:
+            slot = st.ring % so.n_max
+            self._u_in.numpy()[:n3] = u
+            self._b_in.numpy()[:] = b
+            wp.copy(st.U, self._u_in, dest_offset=slot * so.pitch, count=n3)
+            wp.copy(st.P, self._p, dest_offset=slot * so.pitch, count=n3)
+            wp.copy(st.B, self._b_in, dest_offset=slot * 6, count=6)
+            if self._scratch is not None:  # the frame terms that go with the stored G'_k (``compression.folded_G``)
+                self._bf_in.numpy()[:] = b - np.concatenate([a_ext, alpha_ext])
+            stepper.ring_written(so, self._U_k, self._P_k, slot, self._scratch, self._bf_in)
         if self.frame_update:
             T_old, R_old = f.T.copy(), f.R.copy()
             f.update(self.dt, self._gravity, b[:3], b[3:], self._inertia, self._inertia_inv, self.gyroscopic)
@@ -932,6 +993,7 @@ class BemBody(VertexImpulses, Body):
         st.steps += 1
         self._tick("frame", t0)
         self._check_state()
+        return b
 
     def _check_growth(self, peak: float) -> None:
         """Windows of n_max steps: five in a row, all unloaded, each with a peak |u| 20 % above the

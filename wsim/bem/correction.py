@@ -95,20 +95,22 @@ class Correction:
         """Steps 1, 3 and 4 alone: (t, R_e, u'') with x + u = R_e (x + u'' - c0) + c0 + t, so a
         frame moved to R R_e, T + R (c0 + t) - R R_e c0 keeps every point where it is. Used on
         constrained steps (``BemBody``), where the drift goes to the frame's pose, not its
-        acceleration: a held or resting body must not feel a correction force."""
+        acceleration: a held or resting body must not feel a correction force. ``u`` (3N,) or a
+        stack (K, 3N) of bodies on these operators (then t (K, 3), R_e (K, 3, 3), u'' (K, 3N))."""
         n = self.x.shape[0]
-        u3 = u.reshape(n, 3)
-        t = (self.w @ u3) / self.w_sum
-        p = self.q + u3 - t
-        R_e = nearest_rotation(p.T @ self.wq)
-        return t, R_e, (p @ R_e + self.c0 - self.x).reshape(-1)
+        u3 = u.reshape(*u.shape[:-1], n, 3)
+        t = np.einsum("n,...nc->...c", self.w, u3) / self.w_sum
+        p = self.q + u3 - t[..., None, :]
+        R_e = nearest_rotation(np.swapaxes(p, -1, -2) @ self.wq)
+        return t, R_e, (p @ R_e + self.c0 - self.x).reshape(u.shape)
 
     def apply(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Steps 1-6 for the (3N,) displacement u: returns (da, dalpha, corrected u)."""
+        """Steps 1-6 for the (3N,) displacement u, or a stack (K, 3N): returns (da, dalpha,
+        corrected u), each with u's leading axis."""
         n = self.x.shape[0]
         t, _, u2 = self.drift(u)  # steps 1, 3, 4
-        da = -self.K_a @ t
-        du = u2 - (u.reshape(n, 3) - t).reshape(-1)  # u'' - u'
-        r1 = -self.H0_T @ t - self.D0 @ da
-        dalpha = self.P_Q @ r1 + self.P_Q_H0 @ du
-        return da, dalpha, u + self.E @ np.concatenate([da, dalpha])
+        da = -t @ self.K_a.T
+        du = u2 - (u.reshape(*u.shape[:-1], n, 3) - t[..., None, :]).reshape(u.shape)  # u'' - u'
+        r1 = -t @ self.H0_T.T - da @ self.D0.T
+        dalpha = r1 @ self.P_Q.T + du @ self.P_Q_H0.T
+        return da, dalpha, u + np.concatenate([da, dalpha], axis=-1) @ self.E.T

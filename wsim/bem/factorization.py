@@ -26,7 +26,8 @@ from wsim.errors import InvalidParameter
 BACKENDS = ("auto", "scipy", "cupy")
 
 
-def _cupy():
+def cupy_module():
+    """CuPy (the optional ``gpu`` extra) if it imports with a usable driver, else None."""
     try:
         import cupy  # noqa: F401
         import cupyx.scipy.linalg  # noqa: F401
@@ -41,8 +42,8 @@ def resolve(backend: str, cuda: bool) -> str:
     if backend not in BACKENDS:
         raise InvalidParameter(f"factorization = {backend!r} must be one of {', '.join(BACKENDS)}")
     if backend == "auto":
-        return "cupy" if cuda and _cupy() is not None else "scipy"
-    if backend == "cupy" and _cupy() is None:
+        return "cupy" if cuda and cupy_module() is not None else "scipy"
+    if backend == "cupy" and cupy_module() is None:
         raise InvalidParameter("factorization = 'cupy' needs CuPy (pip install 'wsim[gpu]' with the "
                                "cupy wheel of your CUDA, e.g. cupy-cuda12x)")
     return backend
@@ -59,7 +60,7 @@ def factorize(H0: np.ndarray, Gp: np.ndarray, backend: str = "scipy", device_ord
         lu = scipy.linalg.lu_factor(H0, check_finite=True)
         return (lu, scipy.linalg.lu_solve(lu, np.eye(n)).astype(dtype, copy=False),
                 scipy.linalg.lu_solve(lu, Gp).astype(dtype, copy=False))
-    cp = _cupy()
+    cp = cupy_module()
     import cupyx.scipy.linalg as cpl
 
     with cp.cuda.Device(device_ordinal):

@@ -35,6 +35,7 @@ import numpy as np
 import warp as wp
 
 from wsim.bem.correction import Correction
+from wsim.bem.factorization import cupy_module
 from wsim.bem.operators import PRECISIONS, BemOperators
 from wsim.errors import InvalidParameter
 from wsim.kernels import bem_compressed as kc
@@ -77,6 +78,20 @@ class StepOperators:
     def correction(self) -> Correction:
         """Error-correction pieces, built on first use (bodies without the correction never pay)."""
         return Correction.from_operators(self.operators, self.E)
+
+    @cached_property
+    def many_backend(self) -> str:
+        """How the passes of several bodies on this set run together (``history_many``,
+        ``solve_many``): "blas" (numpy matrix-matrix products on the host arrays), "cupy" (cuBLAS
+        through CuPy, the ``gpu`` extra, on Warp's stream) or "each" (the one-body passes per body:
+        compressed sets, CUDA without CuPy, and Warp kernels on the CPU)."""
+        if self.compressed is not None or self.packed is not None:
+            return "each"
+        if self.backend == "blas":
+            return "blas"
+        if self.device.is_cuda and cupy_module() is not None:
+            return "cupy"
+        return "each"
 
     @cached_property
     def node_rows(self) -> wp.array:
@@ -486,3 +501,65 @@ def solve(so: StepOperators, p: wp.array | None, h: wp.array, u: wp.array,
         if p is not None:
             out += so.H0_inv_Gp.numpy() @ p.numpy()
     u.numpy()[:] = out
+
+
+def _slots(steps: np.ndarray, n_max: int) -> np.ndarray:
+    """(K, n_max): ring row of step n - k (k = 1..n_max) for each instance's step n."""
+    return (np.asarray(steps, dtype=np.int64)[:, None] - np.arange(1, n_max + 1)[None, :]) % n_max
+
+
+def history_many(so: StepOperators, U: wp.array, P: wp.array, B: wp.array, steps: np.ndarray, h: wp.array) -> None:
+    """``history`` for K bodies on one operator set at once (``so.many_backend`` "blas" or "cupy"):
+    U, P (K, n_max, pitch) and B (K, n_max, 6) hold the bodies' rings one after the other, steps
+    (K,) each body's step n, h (K, pitch) receives the h_n. Each H_k, G_k is read once for all K
+    (a matrix-matrix product, K columns) instead of once per body."""
+    n3, n_max = so.size, so.n_max
+    S = _slots(steps, n_max)
+    K = S.shape[0]
+    if so.many_backend == "blas":
+        Un, Pn, Bn = U.numpy(), P.numpy(), B.numpy()
+        H, G = (a.numpy().reshape(n_max, n3, so.pitch) for a in (so.H, so.G))
+        DQ = so.DQ.numpy()
+        rows = np.arange(K)
+        out = np.zeros((K, n3), dtype=Un.dtype)
+        for k in range(1, n_max + 1):
+            s = S[:, k - 1]
+            out += Pn[rows, s] @ G[k - 1].T
+            out -= Un[rows, s] @ H[k - 1].T
+            out += Bn[rows, s] @ DQ[k - 1].T
+        h.numpy()[:, :n3] = out
+        return
+    cp = cupy_module()
+    with cp.cuda.Device(so.device.ordinal), cp.cuda.ExternalStream(wp.get_stream(so.device).cuda_stream):
+        H, G = (cp.asarray(a).reshape(n_max, n3, so.pitch) for a in (so.H, so.G))
+        DQ = cp.asarray(so.DQ)
+        Uc, Pc, Bc = cp.asarray(U), cp.asarray(P), cp.asarray(B)
+        rows = cp.arange(K)[:, None]
+        Sc = cp.asarray(S)
+        # (n_max, K, .) gathers of the rows each k reads: small copies next to the matrices
+        Ug, Pg, Bg = (cp.ascontiguousarray(a[rows, Sc].transpose(1, 0, 2)) for a in (Uc, Pc, Bc))
+        out = cp.zeros((K, n3), dtype=Uc.dtype)
+        tmp = cp.empty_like(out)
+        for k in range(n_max):  # 2-D products with the transposed operator: cuBLAS reads it in place
+            out += cp.matmul(Pg[k], G[k].T, out=tmp)
+            out -= cp.matmul(Ug[k], H[k].T, out=tmp)
+            out += cp.matmul(Bg[k], DQ[k].T, out=tmp)
+        cp.asarray(h)[:, :n3] = out
+
+
+def solve_many(so: StepOperators, p: wp.array | None, h: wp.array, u: wp.array) -> None:
+    """``solve`` for K bodies at once: u (K, pitch) = p H_0^-T G'^T + h H_0^-T row by row, i.e.
+    u_i = H_0^-1 G' p_i + H_0^-1 h_i (Eq. 12); p None: no body has tractions."""
+    n3 = so.size
+    if so.many_backend == "blas":
+        out = h.numpy() @ so.H0_inv.numpy().T
+        if p is not None:
+            out += p.numpy() @ so.H0_inv_Gp.numpy().T
+        u.numpy()[:, :n3] = out
+        return
+    cp = cupy_module()
+    with cp.cuda.Device(so.device.ordinal), cp.cuda.ExternalStream(wp.get_stream(so.device).cuda_stream):
+        out = cp.matmul(cp.asarray(h), cp.asarray(so.H0_inv).T)
+        if p is not None:
+            out += cp.matmul(cp.asarray(p), cp.asarray(so.H0_inv_Gp).T)
+        cp.asarray(u)[:, :n3] = out
