@@ -31,13 +31,13 @@ def test_backend_names_are_checked_and_auto_falls_back_to_scipy() -> None:
     with pytest.raises(wsim.InvalidParameter, match="must be one of"):
         factorization.resolve("magma", False)
     assert factorization.resolve("auto", False) == "scipy"  # a CPU build never asks for CuPy
-    if factorization._cupy() is None:
+    if factorization.cupy_module() is None:
         assert factorization.resolve("auto", True) == "scipy"
         with pytest.raises(wsim.InvalidParameter, match="needs CuPy"):
             factorization.resolve("cupy", True)
 
 
-@pytest.mark.skipif(factorization._cupy() is None or not __import__("warp").is_cuda_available(),
+@pytest.mark.skipif(factorization.cupy_module() is None or not __import__("warp").is_cuda_available(),
                     reason="CuPy and a CUDA device needed")
 def test_cupy_factors_equal_scipy() -> None:
     H0, Gp = _system(300, seed=1)

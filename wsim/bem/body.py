@@ -869,7 +869,8 @@ class BemBody(VertexImpulses, Body):
 
     def unconstrained_solve(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The paper's UNCNST stage of the coming step: history, loads and Eq. (12), without
-        changing any state. Returns (u_n float64, a_ext, alpha_ext)."""
+        changing the body's state (it uses up a prediction its ``Instances`` set made for this
+        step, if any). Returns (u_n float64, a_ext, alpha_ext)."""
         predicted, self._predicted = self._predicted, None
         if predicted is not None and predicted[0] == self.steps:  # computed with its set (``wsim.bem.instances``)
             return predicted[1], predicted[2], predicted[3]

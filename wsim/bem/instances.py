@@ -70,21 +70,30 @@ class Instances:
         steps = np.array([b.state.ring for b in self.bodies], dtype=np.int64)
         # the history first: it needs only past steps, so the loads are evaluated meanwhile
         stepper.history_many(so, self.U, self.P, self.B, steps, self.h)
+        if any(b.profile for b in bodies) and so.device.is_cuda:  # GPU time in its own stage
+            wp.synchronize_device(so.device)
         t1 = time.perf_counter()
-        loads = [b._step_loads() for b in bodies]
+        loads = []
+        for b in bodies:  # each body's own loads on its own clock
+            t = time.perf_counter()
+            loads.append(b._step_loads())
+            b.timings["loads"] = b.timings.get("loads", 0.0) + time.perf_counter() - t
         # a member not stepping now keeps its traction row: its product is computed and dropped
-        loaded = any(b._p_live for b in self.bodies)
+        # (a failed member's too, but it alone does not make the set multiply tractions)
+        loaded = any(b._p_live and not b.failed for b in self.bodies)
         t2 = time.perf_counter()
         stepper.solve_many(so, self.p if loaded else None, self.h, self.u)
         wp.copy(self._u_host, self.u)
         wp.synchronize_device(so.device)
         U = self._u_host.numpy()
         t3 = time.perf_counter()
-        share = 1.0 / len(bodies)  # the stage seconds, split over the bodies that stepped
+        # the set's passes serve every member: their seconds are split evenly over the bodies
+        # that stepped (``BemBody.timings``; a user's load shows on the body it loads)
+        share = 1.0 / len(bodies)
         for b, (a_ext, alpha_ext) in zip(bodies, loads):
             b._predicted = (b.steps, U[self._row[id(b)], :n3].astype(np.float64), a_ext, alpha_ext)
-            for stage, seconds in (("history", t1 - t0), ("loads", t2 - t1), ("solve", t3 - t2)):
-                b.timings[stage] = b.timings.get(stage, 0.0) + share * seconds
+            b.timings["history"] = b.timings.get("history", 0.0) + share * (t1 - t0)
+            b.timings["solve"] = b.timings.get("solve", 0.0) + share * (t3 - t2)
 
     def advance(self, t1: float) -> None:
         """Step every member (not in a contact or joint group) to the nearest multiple of dt to t1:
@@ -115,26 +124,32 @@ class Instances:
         if got is None:
             got = [b.unconstrained_solve() for b in bodies]
         U = np.stack([g[0] for g in got])
-        if not np.all(np.isfinite(U)):  # each body on its own: the non-finite one reports itself
+        # each body on its own: the non-finite one reports itself; one body alone (e.g. each
+        # member touching the ground in its own solve) writes its rows with its own copies
+        if len(bodies) == 1 or not np.all(np.isfinite(U)):
             for b, (u, a_ext, alpha_ext) in zip(bodies, got):
                 b._finish_step(u, a_ext, alpha_ext, t0)
             return
         da, dalpha, U_c = so.correction.apply(U)
-        share = (time.perf_counter() - t0) / len(bodies)
         rows = np.array([self._row[id(b)] for b in bodies], dtype=np.int32)
         slots = np.array([b.state.ring % so.n_max for b in bodies], dtype=np.int32)
         u_host, b_host = self._u_host.numpy(), self._b_host.numpy()
+        share = (time.perf_counter() - t0) / len(bodies)
         for i, (b, (u, a_ext, alpha_ext)) in enumerate(zip(bodies, got)):
             b.timings["correction"] = b.timings.get("correction", 0.0) + share
             b_host[rows[i]] = b._finish_step(u, a_ext, alpha_ext, time.perf_counter(), corrected=(da[i], dalpha[i], U_c[i]),
                                              write_rings=False)
             u_host[rows[i], :n3] = b.state.u
         dev = so.device
+        t_rings = time.perf_counter()
         wp.copy(self.u, self._u_host)
         wp.copy(self._b, self._b_host)
         r, s = wp.array(rows, dtype=wp.int32, device=dev), wp.array(slots, dtype=wp.int32, device=dev)
         for src, ring in ((self.u, self.U), (self.p, self.P), (self._b, self.B)):
             wp.launch(ks.write_ring_rows, dim=(len(rows), src.shape[1]), inputs=[src, r, s, ring], device=dev)
+        share = (time.perf_counter() - t_rings) / len(bodies)
+        for b in bodies:  # the stage that writes a lone body's rows (``BemBody._finish_step``)
+            b.timings["frame"] = b.timings.get("frame", 0.0) + share
 
 
 def instance_sets(bodies: Sequence[BemBody]) -> list[Instances]:

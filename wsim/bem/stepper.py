@@ -89,7 +89,7 @@ class StepOperators:
             return "each"
         if self.backend == "blas":
             return "blas"
-        if self.device.is_cuda and cupy_module() is not None:
+        if self.device.is_cuda and _cupy_works(self.device):
             return "cupy"
         return "each"
 
@@ -501,6 +501,20 @@ def solve(so: StepOperators, p: wp.array | None, h: wp.array, u: wp.array,
         if p is not None:
             out += so.H0_inv_Gp.numpy() @ p.numpy()
     u.numpy()[:] = out
+
+
+def _cupy_works(device: wp.Device) -> bool:
+    """Whether CuPy imports and runs a product on ``device`` (a wheel built for another CUDA
+    imports and then fails at its first kernel: the passes then stay per body)."""
+    cp = cupy_module()
+    if cp is None:
+        return False
+    try:
+        with cp.cuda.Device(device.ordinal):
+            a = cp.ones((2, 2), dtype=cp.float32)
+            return bool(float((a @ a).sum()) == 8.0)
+    except Exception:
+        return False
 
 
 def _slots(steps: np.ndarray, n_max: int) -> np.ndarray:
