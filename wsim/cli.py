@@ -1,5 +1,6 @@
-"""Command line: ``wsim run SCENE.py -o OUT.usdc``, ``wsim recover OUT.usdc``, ``wsim info`` and
-``wsim sweep SCENE.py --param NAME=V1,V2 -o DIR`` (``wsim.sweep``).
+"""Command line: ``wsim run SCENE.py -o OUT.usdc``, ``wsim recover OUT.usdc``, ``wsim info``,
+``wsim sweep SCENE.py --param NAME=V1,V2 -o DIR`` (``wsim.sweep``) and ``wsim study [--quick] -o DIR``
+(``wsim.study``).
 
 A scene is a plain Python file that defines ``build(mesh=None, device=None) -> wsim.World`` and,
 optionally, ``FRAMES`` (its default frame count). It can also run standalone:
@@ -161,6 +162,31 @@ def _sweep(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
+def _study(args: argparse.Namespace, argv: Sequence[str]) -> int:
+    """``wsim study``: the knob studies through the sweep engine, one report (``wsim.study``)."""
+    import shlex
+
+    from wsim.study import run_studies
+
+    names = None if args.studies is None else [n.strip() for n in args.studies.split(",") if n.strip()]
+    knobs = None if args.knobs is None else [k.strip() for k in args.knobs.split(",") if k.strip()]
+    command = "wsim " + " ".join(shlex.quote(a) for a in argv)  # recorded in the report
+    try:
+        engine = args.engine or ("ray" if args.address else "local")
+        report = run_studies(names, args.out, quick=args.quick, device=args.device, engine=engine,
+                             address=args.address, gpus_per_task=args.gpus_per_task, knobs=knobs, command=command)
+    except WsimError as exc:
+        print(f"wsim: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"wsim study: {Path(args.out) / 'study.md'}, {Path(args.out) / 'study.json'}"
+          + ("" if report.get("plots") else " (no plots: " + report.get("plots_skipped", "no results") + ")"))
+    failed = [n for n, s in report["studies"].items() if not s["reference_ok"]]
+    if failed:
+        print(f"wsim study: the reference of {', '.join(failed)} failed: no errors for them (see the report)",
+              file=sys.stderr)
+    return 1 if failed else 0
+
+
 def info() -> str:
     import warp as wp
 
@@ -257,6 +283,17 @@ def main(argv: Sequence[str] | None = None) -> int:
                      help="auto: Ray if installed, else one after another in this process")
     swp.add_argument("--address", default=None, help="a Ray cluster's address (default: a local Ray)")
     swp.add_argument("--gpus-per-task", type=float, default=1.0, help="GPUs a Ray task takes (0.25: four small scenes a GPU)")
+    sty = sub.add_parser("study", help="speed/accuracy report of every method's knobs (through the sweep engine)")
+    sty.add_argument("-o", "--out", default="wsim_study", help="report folder: study.md, study.json, PNGs, runs (default: wsim_study)")
+    sty.add_argument("--quick", action="store_true", help="CPU-sized grids (minutes); without it the full grids, for a GPU")
+    sty.add_argument("--studies", default=None, metavar="NAME,...", help="bem, eol, pbd, pde, coupling (default: all)")
+    sty.add_argument("--knobs", default=None, metavar="KNOB,...", help="only these knobs (e.g. dt,compression)")
+    sty.add_argument("--device", default=None, help="device of the in-process runner (default: cuda:0 if present, else cpu)")
+    sty.add_argument("--engine", default=None, choices=["auto", "local", "ray"],
+                     help="local (default): one after another in this process, so no timing shares the machine; "
+                          "ray: a task per variant (one GPU each; on a CPU one core each); auto: Ray if installed")
+    sty.add_argument("--address", default=None, help="a Ray cluster's address (implies --engine ray)")
+    sty.add_argument("--gpus-per-task", type=float, default=1.0, help="GPUs a Ray task takes")
     pre = sub.add_parser("preview", help="render a quick-look of a USD output (.png contact sheet, .gif, .mp4); no display or GPU needed")
     pre.add_argument("usd", help="a USD file written by wsim (any stage with meshes under /World)")
     pre.add_argument("-o", "--out", default=None, help="output .png (contact sheet), .gif or .mp4 (needs ffmpeg) (default: <usd>.png)")
@@ -291,6 +328,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         quiet_warp()
         return _sweep(args)
+    if args.command == "study":
+        from wsim.device import quiet_warp
+
+        quiet_warp()
+        return _study(args, sys.argv[1:] if argv is None else argv)
     if args.command == "recover":
         from wsim.usd import recover
 

@@ -17,8 +17,15 @@ point ``WARP_CACHE_PATH`` at shared storage on a cluster) instead of once per ta
 
 A variant that raises (or whose metrics do, or whose Ray worker dies) is reported (status
 "failed", the error) and the others finish; a variant whose JSON says "ok" for the same
-parameters, frames and device is skipped when the sweep runs again. Results are written atomically:
-``DIR/<variant>.json`` per variant and ``DIR/sweep.jsonl`` (all of them) at the end.
+parameters, frames, device and USD output is skipped when the sweep runs again. Results are
+written atomically: ``DIR/<variant>.json`` per variant and ``DIR/sweep.jsonl`` (all of them) at
+the end.
+
+For other engines on top of this one (``wsim.study``): ``params`` may also be an explicit list of
+variants (one dict each) instead of a product, ``usd=False`` simulates without writing USD (the
+timing then holds no output), and ``warm_full=True`` makes the warm-up run the first variant's
+every frame, unrecorded, before Ray's tasks and before the in-process runner too, so that no
+recorded variant pays for compiling kernels, those first reached late (contact) included.
 """
 
 from __future__ import annotations
@@ -118,9 +125,11 @@ def _write_json(path: Path, record: dict) -> None:
 
 
 def run_variant(scene_path: str, params: dict[str, Any], out_dir: str, device: str | None = None,
-                frames: int | None = None) -> dict:
+                frames: int | None = None, usd: bool = True) -> dict:
     """Build, simulate and write one variant; returns (and writes) its metrics record. Never raises
-    for a failure of the scene: the record says "failed" with the error."""
+    for a failure of the scene: the record says "failed" with the error. ``usd=False``: no USD file
+    (the record's ``usd`` is None)."""
+    t_enter = time.perf_counter()
     import warp as wp
 
     from wsim.device import quiet_warp
@@ -134,16 +143,18 @@ def run_variant(scene_path: str, params: dict[str, Any], out_dir: str, device: s
     record: dict[str, Any] = {"variant": name, "scene": scene, "params": params, "status": "failed",
                               "frames": n, "device_requested": device}
     t0 = time.perf_counter()
+    # imports and the scene file: what a fresh Ray worker pays before the build
+    record["startup_s"] = round(t0 - t_enter, 4)
     try:
         with _no_progress():
             world = build(mesh=None, device=device, **params)
         t1 = time.perf_counter()
-        world.run(n, out / f"{name}.usdc", progress=False)
+        world.run(n, out / f"{name}.usdc" if usd else None, progress=False)
         t2 = time.perf_counter()
         measures = None if metrics is None else json.loads(json.dumps(metrics(world), default=str))
         dev = world.device
         record.update(build_s=round(t1 - t0, 4), run_s=round(t2 - t1, 4),
-                      ms_per_frame=round(1e3 * (t2 - t1) / max(n, 1), 3), usd=str(out / f"{name}.usdc"),
+                      ms_per_frame=round(1e3 * (t2 - t1) / max(n, 1), 3), usd=str(out / f"{name}.usdc") if usd else None,
                       device=dev.name if dev.is_cuda else "cpu",
                       # high-water marks of the process: per variant in a Ray task, cumulative in-process
                       device_mem_high_mb=round(wp.get_mempool_used_mem_high(dev) / 2**20, 1) if dev.is_cuda else None)
@@ -163,20 +174,25 @@ def run_variant(scene_path: str, params: dict[str, Any], out_dir: str, device: s
     return record
 
 
-def _done(out: Path, name: str, params: dict[str, Any], frames: int, device: str | None) -> dict | None:
-    """The variant's record if a finished run of the same parameters, frames and device is on disk."""
+def _done(out: Path, name: str, params: dict[str, Any], frames: int, device: str | None,
+          usd: bool = True) -> dict | None:
+    """The variant's record if a finished run of the same parameters, frames, device and USD
+    output (written or not) is on disk."""
     try:
         record = json.loads((out / f"{name}.json").read_text())
     except (OSError, ValueError):
         return None
     same = (record.get("params") == json.loads(json.dumps(params, default=str)) and record.get("frames") == frames
-            and record.get("device_requested") == device)
+            and record.get("device_requested") == device and bool(record.get("usd")) == usd)
     return record if record.get("status") == "ok" and same else None
 
 
-def _warm(scene_path: str, params: dict[str, Any], device: str | None) -> float:
-    """Compile the scene's kernels once (Warp's on-disk cache) by building the first variant and
-    stepping it one frame; returns the seconds it took."""
+def _warm(scene_path: str, params: dict[str, Any], device: str | None, frames: int = 1, load_all: bool = True) -> float:
+    """Compile the scene's kernels once (Warp's on-disk cache) by building the first variant,
+    stepping it ``frames`` frames and (``load_all``) then compiling every Warp module its build
+    imported; returns the seconds it took."""
+    import warp as wp
+
     from wsim.device import quiet_warp
 
     quiet_warp()
@@ -184,28 +200,34 @@ def _warm(scene_path: str, params: dict[str, Any], device: str | None) -> float:
     t = time.perf_counter()
     try:
         with _no_progress():
-            build(mesh=None, device=device, **params).step()
+            world = build(mesh=None, device=device, **params)
+            world.run(frames, None, progress=False)
+        # kernels a scene reaches only later (contact, once bodies touch) too: one frame left them
+        # to the first task, which compiled them for 32 s on an H200 while the others waited on
+        # the cache (tools/results/bench_sweep_h200x2_first.jsonl)
+        if load_all:
+            wp.force_load(device=world.device)
     except Exception:  # the variant's own run reports it
         pass
     return time.perf_counter() - t
 
 
 def _ray_run(todo: list[dict[str, Any]], scene_path: str, out_dir: str, device: str | None, frames: int | None,
-             address: str | None, gpus_per_task: float) -> list[dict]:
+             address: str | None, gpus_per_task: float, usd: bool = True) -> list[dict]:
     import ray
 
     started = not ray.is_initialized()
     if started:
         ray.init(address=address, log_to_driver=False)
     try:
-        return _ray_tasks(ray, todo, scene_path, out_dir, device, frames, gpus_per_task)
+        return _ray_tasks(ray, todo, scene_path, out_dir, device, frames, gpus_per_task, usd)
     finally:
         if started:  # a Ray this sweep started is not left running
             ray.shutdown()
 
 
 def _ray_tasks(ray: Any, todo: list[dict[str, Any]], scene_path: str, out_dir: str, device: str | None,
-               frames: int | None, gpus_per_task: float) -> list[dict]:
+               frames: int | None, gpus_per_task: float, usd: bool = True) -> list[dict]:
     gpus = ray.cluster_resources().get("GPU", 0.0)
     want_gpu = gpus > 0 and device not in ("cpu",)
     options = {"num_gpus": gpus_per_task, "num_cpus": 1} if want_gpu else {"num_cpus": 1}
@@ -214,7 +236,7 @@ def _ray_tasks(ray: Any, todo: list[dict[str, Any]], scene_path: str, out_dir: s
     task = ray.remote(max_calls=1, max_retries=0)(run_variant).options(**options)
     # Ray gives each GPU task its own CUDA_VISIBLE_DEVICES: inside, the GPU is cuda:0
     task_device = "cuda:0" if want_gpu else "cpu"
-    refs = [task.remote(scene_path, p, out_dir, task_device, frames) for p in todo]
+    refs = [task.remote(scene_path, p, out_dir, task_device, frames, usd) for p in todo]
     records = []
     for p, ref in zip(todo, refs):
         try:
@@ -225,26 +247,39 @@ def _ray_tasks(ray: Any, todo: list[dict[str, Any]], scene_path: str, out_dir: s
     return records
 
 
-def sweep(scene_path: str, params: dict[str, Sequence[Any]], out_dir: str | os.PathLike[str], *,
-          device: str | None = None, frames: int | None = None, engine: str = "auto", address: str | None = None,
-          gpus_per_task: float = 1.0, warm: bool = True, log: Callable[[str], None] | None = None) -> list[dict]:
-    """Run every variant of ``params`` (NAME -> values) of the scene file; returns the records
-    (skipped variants' from their JSON), also written to ``out_dir/sweep.jsonl``."""
+def sweep(scene_path: str, params: dict[str, Sequence[Any]] | Sequence[dict[str, Any]], out_dir: str | os.PathLike[str],
+          *, device: str | None = None, frames: int | None = None, engine: str = "auto", address: str | None = None,
+          gpus_per_task: float = 1.0, warm: bool = True, log: Callable[[str], None] | None = None,
+          usd: bool = True, warm_full: bool = False) -> list[dict]:
+    """Run every variant of ``params`` (NAME -> values: their cartesian product; or a list of
+    variants, one dict of parameters each) of the scene file; returns the records (skipped
+    variants' from their JSON), also written to ``out_dir/sweep.jsonl``.
+
+    ``usd=False`` writes no USD. ``warm_full`` (with ``warm``): the warm-up runs the first
+    pending variant for all its frames, unrecorded, before the in-process runner too, so that
+    the recorded variants' timings hold no kernel compilation (a Ray task's fresh process then
+    only loads the compiled kernels from the cache)."""
     say = log or (lambda s: print(s, file=sys.stderr))
     if engine not in ENGINES:
         raise InvalidParameter(f"sweep engine {engine!r}: one of {', '.join(ENGINES)}")
     if not gpus_per_task > 0:
         raise InvalidParameter(f"gpus_per_task = {gpus_per_task}: must be > 0 (e.g. 0.25 for four small scenes a GPU)")
     build, default_frames, scene, _ = load_scene(scene_path)
-    check_params(build, scene, list(params))
+    if isinstance(params, dict):
+        allv, swept = variants(dict(params)), list(params)
+    else:
+        if not all(isinstance(p, dict) for p in params):
+            raise InvalidParameter(f"scene '{scene}': a list of variants must hold one dict of parameters each")
+        allv = [dict(p) for p in params]
+        swept = list(dict.fromkeys(n for p in allv for n in p))
+    check_params(build, scene, swept)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    allv = variants(dict(params))
     names = [variant_name(scene, p) for p in allv]
     if len(set(names)) != len(names):
         raise InvalidParameter(f"scene '{scene}': two variants would share a file name; give distinct values")
     n_frames = frames if frames is not None else default_frames
-    done = {n: r for n, r in ((n, _done(out, n, p, n_frames, device)) for n, p in zip(names, allv)) if r is not None}
+    done = {n: r for n, r in ((n, _done(out, n, p, n_frames, device, usd)) for n, p in zip(names, allv)) if r is not None}
     todo = [p for p, n in zip(allv, names) if n not in done]
     if done:
         say(f"wsim sweep: {len(done)} of {len(allv)} variants already done in {out}, skipped")
@@ -262,15 +297,19 @@ def sweep(scene_path: str, params: dict[str, Sequence[Any]], out_dir: str | os.P
     fresh: dict[str, dict] = {}
     if todo:
         if warm and use_ray:  # in-process, the first variant compiles them for the rest
-            say(f"wsim sweep: compiling the scene's kernels once ({_warm(scene_abs, todo[0], device):.1f} s)")
+            secs = _warm(scene_abs, todo[0], device, n_frames if warm_full else 1)
+            say(f"wsim sweep: compiling the scene's kernels once ({secs:.1f} s)")
+        elif warm and warm_full:  # the whole run: kernels first reached late (contact) are compiled too
+            say(f"wsim sweep: a warm-up run of {variant_name(scene, todo[0])} "
+                f"({_warm(scene_abs, todo[0], device, n_frames, load_all=False):.1f} s, not recorded)")
         t = time.perf_counter()
         if use_ray:
-            records = _ray_run(todo, scene_abs, str(out.resolve()), device, frames, address, gpus_per_task)
+            records = _ray_run(todo, scene_abs, str(out.resolve()), device, frames, address, gpus_per_task, usd)
         else:
             records = []
             for i, p in enumerate(todo):
                 say(f"wsim sweep: [{i + 1}/{len(todo)}] {variant_name(scene, p)}")
-                records.append(run_variant(scene_abs, p, str(out), device, frames))
+                records.append(run_variant(scene_abs, p, str(out), device, frames, usd))
         say(f"wsim sweep: {len(todo)} variants in {time.perf_counter() - t:.1f} s ({'Ray' if use_ray else 'in-process'})")
         fresh = {r["variant"]: r for r in records}
     results = [fresh.get(n) or done[n] for n in names]
