@@ -118,8 +118,9 @@ class BemBody(VertexImpulses, Body):
             Eq. (11e)'s omega, which stays fixed under zero torque about any axis.
         precision: storage of the dense matrices, "float32" (default) or "float64"; with
             ``operators`` given, theirs (a different explicit value is an error).
-        method: CQ method "bdf1" (paper) or "bdf2". BDF2 is unstable on the bodies tested (README,
-            BEM limits): its displacement grows after a load is released; a warning says so.
+        method: CQ method "bdf1" (paper) or "bdf2". BDF2 was unstable on the bodies tested unless dt
+            was long for the mesh (README, BEM limits): its displacement grows after a load is
+            released; a warning says so.
         double_nodes: crease angle [deg] for double nodes at sharp edges, or None.
         n_max: history length override.
         operators: a prebuilt :class:`~wsim.bem.BemOperators` for this mesh (skips the build).
@@ -246,9 +247,10 @@ class BemBody(VertexImpulses, Body):
         self._build_args = dict(method=method, precision=precision, double_nodes=double_nodes, n_max=n_max,
                                 cache=cache, progress=progress, **quadrature)
         if (operators.method if operators is not None else method) == "bdf2":
-            warnings.warn(f"body '{name}': method='bdf2' grew without bound on every sphere tested (42 and 162 "
-                          "nodes, dt 0.5-2 ms: |u| rose from 2.3 mm to 19 mm over 0.9 s after a 20 ms squeeze, "
-                          "where bdf1 rang down); use 'bdf1' (README, BEM limits)", RuntimeWarning, stacklevel=2)
+            warnings.warn(f"body '{name}': method='bdf2' grew without bound on the spheres tested unless dt was "
+                          "long for the mesh (42 nodes: at dt = 0.5-4 ms, c2 dt / edge up to 0.4; bounded at 8 ms; "
+                          "162 nodes: at 1 ms), where bdf1 rang down; use 'bdf1' (README, BEM limits)",
+                          RuntimeWarning, stacklevel=2)
         self._mesh = (vertices, faces)
         self._faces = faces.astype(np.int32)
         self._surface = surface
