@@ -166,12 +166,17 @@ def moments(
     inv_mass: wp.array(dtype=float),
     sums: wp.array(dtype=wp.float64),
     base: int,
+    seg: wp.array(dtype=int),
+    first: wp.array(dtype=int),
+    stride: int,
 ):
     """Block sums (float64, one atomic per block and slot) of the free particles' mass, first and
-    second moments of position about o = x[0] (r = x - o), momentum, angular momentum about o, and
-    the contact corrections dxc with their moment (``MOMENT_SUMS`` slots from sums[base]).
+    second moments of position about o = x[first[s]] (r = x - o), momentum, angular momentum about
+    o, and the contact corrections dxc with their moment (``MOMENT_SUMS`` slots from
+    sums[s stride + base]), per body s = seg[i] of the particles (one body: seg all 0, first [0]).
     o removes the float32 cancellation of a body far from the origin. Launch with dim rounded up
-    to a multiple of MOMENT_BLOCK and block_dim = MOMENT_BLOCK; ``sums`` zeroed before.
+    to a multiple of MOMENT_BLOCK and block_dim = MOMENT_BLOCK; ``sums`` zeroed before. Every
+    block must hold particles of one body only (a ``PbdBatch`` pads each body to whole blocks).
     """
     i = wp.tid()
     z = wp.float64(0.0)
@@ -179,25 +184,28 @@ def moments(
     r = wp.vec3d(z, z, z)
     u = wp.vec3d(z, z, z)
     q = wp.vec3d(z, z, z)
+    s = int(0)
     if i < x.shape[0]:
+        s = seg[i]
         if inv_mass[i] > 0.0:
             m = wp.float64(1.0) / wp.float64(inv_mass[i])
-            r = wp.vec3d(x[i] - x[0])
+            r = wp.vec3d(x[i] - x[first[s]])
             u = wp.vec3d(v[i])
             q = wp.vec3d(dxc[i])
     L = wp.cross(r, u)
     T = wp.cross(r, q)
-    _block_add(sums, m, base)
+    o = s * stride + base
+    _block_add(sums, m, o)
     for k in range(3):
-        _block_add(sums, m * r[k], base + 1 + k)
-        _block_add(sums, m * u[k], base + 4 + k)
-        _block_add(sums, m * r[k] * r[k], base + 7 + k)
-        _block_add(sums, m * L[k], base + 13 + k)
-        _block_add(sums, m * q[k], base + 16 + k)
-        _block_add(sums, m * T[k], base + 19 + k)
-    _block_add(sums, m * r[0] * r[1], base + 10)
-    _block_add(sums, m * r[0] * r[2], base + 11)
-    _block_add(sums, m * r[1] * r[2], base + 12)
+        _block_add(sums, m * r[k], o + 1 + k)
+        _block_add(sums, m * u[k], o + 4 + k)
+        _block_add(sums, m * r[k] * r[k], o + 7 + k)
+        _block_add(sums, m * L[k], o + 13 + k)
+        _block_add(sums, m * q[k], o + 16 + k)
+        _block_add(sums, m * T[k], o + 19 + k)
+    _block_add(sums, m * r[0] * r[1], o + 10)
+    _block_add(sums, m * r[0] * r[2], o + 11)
+    _block_add(sums, m * r[1] * r[2], o + 12)
 
 
 @wp.kernel
@@ -208,9 +216,14 @@ def moments_serial(
     inv_mass: wp.array(dtype=float),
     sums: wp.array(dtype=wp.float64),
     base: int,
+    first: wp.array(dtype=int),
+    count: wp.array(dtype=int),
+    stride: int,
 ):
-    """``moments`` for the CPU, one thread looping over every particle (Warp CPU kernels are serial,
-    where 22 block reductions per particle cost 1.5x the whole constraint solve)."""
+    """``moments`` for the CPU: thread s loops over body s's particles first[s] .. first[s] +
+    count[s] (Warp CPU kernels are serial, where 22 block reductions per particle cost 1.5x the
+    whole constraint solve). Launch with dim = the number of bodies."""
+    b = wp.tid()
     z = wp.float64(0.0)
     M = z
     r1 = wp.vec3d(z, z, z)
@@ -220,10 +233,11 @@ def moments_serial(
     Lo = wp.vec3d(z, z, z)
     Q = wp.vec3d(z, z, z)
     To = wp.vec3d(z, z, z)
-    for i in range(x.shape[0]):
+    i0 = first[b]
+    for i in range(i0, i0 + count[b]):
         if inv_mass[i] > 0.0:
             m = wp.float64(1.0) / wp.float64(inv_mass[i])
-            r = wp.vec3d(x[i] - x[0])
+            r = wp.vec3d(x[i] - x[i0])
             u = wp.vec3d(v[i])
             q = wp.vec3d(dxc[i])
             M += m
@@ -234,15 +248,16 @@ def moments_serial(
             Lo += m * wp.cross(r, u)
             Q += m * q
             To += m * wp.cross(r, q)
-    sums[base] = M
+    o = b * stride + base
+    sums[o] = M
     for k in range(3):
-        sums[base + 1 + k] = r1[k]
-        sums[base + 4 + k] = P[k]
-        sums[base + 7 + k] = d2[k]
-        sums[base + 10 + k] = off[k]
-        sums[base + 13 + k] = Lo[k]
-        sums[base + 16 + k] = Q[k]
-        sums[base + 19 + k] = To[k]
+        sums[o + 1 + k] = r1[k]
+        sums[o + 4 + k] = P[k]
+        sums[o + 7 + k] = d2[k]
+        sums[o + 10 + k] = off[k]
+        sums[o + 13 + k] = Lo[k]
+        sums[o + 16 + k] = Q[k]
+        sums[o + 19 + k] = To[k]
 
 
 @wp.func
@@ -260,6 +275,10 @@ def restore_angular_momentum(
     inv_mass: wp.array(dtype=float),
     sums: wp.array(dtype=wp.float64),
     inv_h: wp.float64,
+    seg: wp.array(dtype=int),
+    first: wp.array(dtype=int),
+    stride: int,
+    enabled: wp.array(dtype=int),
 ):
     """Give back the angular momentum the implicit (XPBD) solve of the internal constraints took.
 
@@ -272,18 +291,23 @@ def restore_angular_momentum(
     (the chord is shorter than the arc). With dL = L_0 + T - L_1 and I_1 the inertia tensor now,
     every free particle gets v += (I_1^-1 dL) x (x - c_1): a rigid rotation increment, which
     changes no linear momentum and restores L exactly. Each thread solves the 3x3 itself (no
-    single-thread launch).
+    single-thread launch). Per body s = seg[i] (its sums from s stride, its origin x[first[s]]),
+    where enabled[s] (a ``PbdBatch`` of bodies with and without the restoration).
     """
     i = wp.tid()
     if inv_mass[i] == 0.0:
         return
-    b = 22
+    s = seg[i]
+    if enabled[s] == 0:
+        return
+    a = s * stride
+    b = a + 22
     M = sums[b]
     if M <= wp.float64(0.0):
         return
     d = wp.vec3d(sums[b + 1], sums[b + 2], sums[b + 3]) / M
     T = wp.vec3d(sums[b + 19], sums[b + 20], sums[b + 21]) - wp.cross(d, wp.vec3d(sums[b + 16], sums[b + 17], sums[b + 18]))
-    dL = _about_com(sums, 0) + T * inv_h - _about_com(sums, b)
+    dL = _about_com(sums, a) + T * inv_h - _about_com(sums, b)
     S = wp.mat33d(sums[b + 7], sums[b + 10], sums[b + 11], sums[b + 10], sums[b + 8], sums[b + 12],
                   sums[b + 11], sums[b + 12], sums[b + 9]) - M * wp.outer(d, d)
     t = S[0, 0] + S[1, 1] + S[2, 2]
@@ -293,7 +317,7 @@ def restore_angular_momentum(
     if t <= wp.float64(0.0) or det <= wp.float64(1.0e-9) * t * t * t:
         return  # particles on a line: no rotation to restore
     dw = wp.inverse(I) * dL
-    r = wp.vec3d(x[i] - x[0]) - d
+    r = wp.vec3d(x[i] - x[first[s]]) - d
     v[i] = v[i] + wp.vec3(wp.cross(dw, r))
 
 

@@ -51,4 +51,10 @@ def test_a_run_reports_the_sweep_against_its_converged_run() -> None:
         import newton  # noqa: F401
     except ImportError:
         assert any(r.get("solver") == "newton" and "skipped" in r for r in lines)
-    assert "summary" in lines[-1]
+    summary = [r for r in lines if "summary" in r]
+    assert len(summary) == 1
+    ranges = [r for r in lines if "range" in r]
+    if ranges:  # both solvers ran: the worst ratio over the range is no better than at any listed level
+        listed = [e["newton_over_wsim_time"] for e in summary[0]["summary"] if "newton_over_wsim_time" in e]
+        assert all(ranges[0]["worst_newton_over_wsim_time"] <= x + 1e-12 for x in listed)
+        assert ranges[0] is lines[-1]

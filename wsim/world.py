@@ -226,6 +226,12 @@ class World:
             grouped = {id(b) for bodies, _ in self._groups for b in bodies}
             self._group_sets = [_instance_sets(bodies) for bodies, _ in self._groups]
             self._sets = _instance_sets([b for b in self.bodies if id(b) not in grouped])
+            # PBD bodies in one launch set (``PbdBody.batches``): those stepping alone go through
+            # ``_sets`` like instance sets; lockstep ones are stepped by ``advance_together``
+            pbd_all = [b for b in self.bodies if hasattr(b, "batches")]
+            pbd_batches = type(pbd_all[0]).batches(pbd_all) if len(pbd_all) > 1 else []
+            if not self._lockstep:
+                self._sets += pbd_batches
             self._index = {id(b): i for i, b in enumerate(self.bodies)}  # a body's key in the exchange
             self._bound = True
 
@@ -289,7 +295,7 @@ class World:
                 if id(body) not in in_set:
                     self._timed(_stage(body), body.advance, t0, t1)
                 elif body is in_set[id(body)].bodies[0]:  # the set steps its bodies together
-                    self._timed(_stage(body), in_set[id(body)].advance, t1)
+                    self._timed(_stage(body), _advance_set, in_set[id(body)], t0, t1)
         for (bodies, joints), sets in zip(self._groups, self._group_sets):
             self._timed("bem", _advance_group, bodies, joints, t1, self.device, self.body_contact, sets)
         end: dict[int, np.ndarray] = {}  # each target's points at the interval's end (read once per interval)
@@ -444,6 +450,14 @@ def _advance_group(bodies: list[Body], joints: list, t1: float, device, contact:
         for s in sets:
             s.predict(s.bodies)
         wc.solve_group(bodies, joints, device, tol, iterations, bodies[0].steps + 1, contact_margin=margin)
+
+
+def _advance_set(members: Any, t0: float, t1: float) -> None:
+    """Step a set of bodies that advance together: a BEM instance set (to t1) or a PBD batch."""
+    if hasattr(members, "steps_together"):
+        members.advance(t0, t1)
+    else:
+        members.advance(t1)
 
 
 def _instance_sets(bodies: Sequence[Body]) -> list:

@@ -491,6 +491,12 @@ class PbdBody(Body):
             # the Jacobi sweep's corrections (the Gauss-Seidel kernels get dx in its place, unused)
             self._acc = wp.zeros(n, dtype=wp.vec3) if self.solver == "jacobi" else self.dx
             self._moments = wp.zeros(2 * kp.MOMENT_SUMS, dtype=wp.float64)
+            # the moments kernels sum per body ("segment"): one segment here (a ``PbdBatch`` has many)
+            self._seg = wp.zeros(n, dtype=int)
+            self._seg_first = wp.zeros(1, dtype=int)
+            self._seg_count = wp.array([n], dtype=int)
+            self._seg_stride = 0
+            self._seg_restore = wp.ones(1, dtype=int)
             self.inv_mass = wp.array(inv_mass.astype(np.float32), dtype=float)
             self.flags = wp.zeros(2, dtype=int)
             # one multiplier array for every family: a single memset per substep resets them all
@@ -523,6 +529,7 @@ class PbdBody(Body):
         self._graph = None
         self._contact_mesh: wp.Mesh | None = None  # its surface, for contact with other bodies (wsim.pbd.contact)
         self._moving: list[_MovingSurface] = []  # other methods' bodies in reach this frame
+        self._batch = None  # the PbdBatch that steps this body with others (``wsim.pbd.batch``), if any
 
     def attach_colliders(self, surfaces: Surfaces) -> None:
         self._surfaces = surfaces
@@ -584,6 +591,14 @@ class PbdBody(Body):
         from wsim.pbd.contact import advance_together
 
         advance_together(bodies, t0, t1, graphs)
+
+    @staticmethod
+    def batches(bodies: Sequence[PbdBody]) -> list:
+        """The bodies of ``bodies`` that can step in one launch set, as batches
+        (``wsim.pbd.batch``); bodies of no batch are not listed."""
+        from wsim.pbd.batch import batches
+
+        return batches(bodies)
 
     def advance(self, t0: float, t1: float) -> None:
         # (f + 1)/fps - f/fps differs from frame to frame in its last bits; round it so the
@@ -648,10 +663,11 @@ class PbdBody(Body):
 
     def _launch_moments(self, base: int, n_blocks: int) -> None:
         args = [self.x, self.v, self.dxc, self.inv_mass, self._moments, base]
-        if self._device.is_cpu:
-            wp.launch(kp.moments_serial, dim=1, inputs=args)  # the CPU runs kernels serially anyway
+        if self._device.is_cpu:  # the CPU runs kernels serially anyway: one thread a body
+            wp.launch(kp.moments_serial, dim=len(self._seg_first), inputs=[*args, self._seg_first, self._seg_count, self._seg_stride])
         else:
-            wp.launch(kp.moments, dim=n_blocks, inputs=args, block_dim=kp.MOMENT_BLOCK)
+            wp.launch(kp.moments, dim=n_blocks, inputs=[*args, self._seg, self._seg_first, self._seg_stride],
+                      block_dim=kp.MOMENT_BLOCK)
 
     def _launch_frame(self, substeps: int, h: float) -> None:
         for s in range(1, substeps + 1):
@@ -781,7 +797,8 @@ class PbdBody(Body):
         if self.conserve_angular_momentum:
             self._launch_moments(kp.MOMENT_SUMS, self._moment_blocks())
             wp.launch(kp.restore_angular_momentum, dim=n,
-                      inputs=[self.x, self.v, self.inv_mass, self._moments, wp.float64(1.0 / h)])
+                      inputs=[self.x, self.v, self.inv_mass, self._moments, wp.float64(1.0 / h), self._seg,
+                              self._seg_first, self._seg_stride, self._seg_restore])
 
     def check_finite(self, frame: int, time: float) -> None:
         self.flags.zero_()  # the array's own device

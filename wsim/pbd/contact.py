@@ -104,10 +104,19 @@ def advance_together(bodies: Sequence[PbdBody], t0: float, t1: float, graphs: di
     pairs = candidate_pairs(bodies, frame_dt)
     touching = {id(b) for pair in pairs for b in pair}
     for b in bodies:
-        if id(b) not in touching:
-            if b._contact_mesh is not None:  # back on its own: no contact corrections left over
-                b._contact_mesh = None
-                b.dxc.zero_()
+        if id(b) not in touching and b._contact_mesh is not None:  # back on its own: no contact corrections left over
+            b._contact_mesh = None
+            b.dxc.zero_()
+    done: set[int] = set()
+    for b in bodies:
+        if id(b) in touching or id(b) in done:
+            continue
+        batch = b._batch  # a batch all of whose members are free this frame steps as one (wsim.pbd.batch)
+        if batch is not None and not any(id(m) in touching for m in batch.bodies) and \
+                all(any(m is c for c in bodies) for m in batch.bodies):
+            batch.advance(t0, t1)
+            done.update(id(m) for m in batch.bodies)
+        else:
             b.advance(t0, t1)
     group = [b for b in bodies if id(b) in touching]
     if not group:

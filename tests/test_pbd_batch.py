@@ -1,0 +1,136 @@
+"""PBD batches (``wsim.pbd.batch``): bodies stepped in one launch set move exactly as each moves
+alone: free, spinning (the per-body momentum restoration), on the ground, through a frame where
+two of them touch (the batch then steps its members one by one), and across a checkpoint."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+import wsim
+from wsim.pbd import batch as pbd_batch
+
+FRAMES = 12
+
+
+def ball(radius: float, subdivisions: int) -> trimesh.Trimesh:
+    return trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+
+
+SPEC = [  # name, mesh, keyword arguments
+    ("a", ball(0.2, 1), dict(position=(0.0, 0.6, 0.0), velocity=(0.5, 0.0, 0.0), tets="auto")),
+    ("b", ball(0.15, 2), dict(position=(1.0, 0.8, 0.0), angular_velocity=(0.0, 4.0, 1.0), tets="auto")),
+    ("c", ball(0.25, 1), dict(position=(2.5, 1.0, 0.0), angular_velocity=(3.0, 0.0, 0.0), velocity=(0.0, 1.0, 0.0),
+                              tets="auto")),
+]
+
+
+def run(device: str, together: bool, *, gravity=(0.0, -9.81, 0.0), ground: bool = True, contact: bool = False,
+        spec=SPEC, frames: int = FRAMES, batches: bool = True) -> dict[str, np.ndarray]:
+    """Every body's particles after each frame, the bodies in one World or one World each."""
+    def world() -> wsim.World:
+        w = wsim.World(fps=30.0, device=device, gravity=gravity, body_contact=contact)
+        if ground:
+            w.add_collider(wsim.GroundPlane(friction=0.5))
+        return w
+
+    worlds = [world()] if together else []
+    bodies = []
+    for name, mesh, kw in spec:
+        if not together:
+            worlds.append(world())
+        bodies.append(worlds[-1].add(wsim.PbdBody(mesh, dict(E=2e5, nu=0.3, rho=500.0), name=name, **kw)))
+    original = pbd_batch.batches
+    if not batches:
+        pbd_batch.batches = lambda bodies: []
+    try:
+        out: dict[str, list] = {b.name: [] for b in bodies}
+        for _ in range(frames):
+            for w in worlds:
+                w.step()
+            for b in bodies:
+                out[b.name].append(b.particles())
+    finally:
+        pbd_batch.batches = original
+    if together and batches:  # they did form one batch
+        assert all(b._batch is not None and b._batch is bodies[0]._batch for b in bodies)
+    return {k: np.array(v) for k, v in out.items()}
+
+
+def assert_same(a: dict, b: dict, tol: float) -> None:
+    for name in a:
+        assert np.max(np.abs(a[name] - b[name])) <= tol, (name, np.max(np.abs(a[name] - b[name])))
+
+
+@pytest.mark.parametrize("contact", [False, True])
+def test_batched_bodies_move_as_alone(device, contact, monkeypatch):
+    """Free falls onto the ground, spins and throws: the batch (stepped by the World, or inside
+    the lockstep of touching-capable bodies with contact on) gives each body its solo trajectory:
+    the same arithmetic (bit for bit on the CPU), the momentum restoration summed per body."""
+    alone = run(device, together=False, contact=contact)
+    real = wsim.PbdBody.advance
+
+    def solo(body, t0, t1):  # after the first frame (which forms the batch) no body steps alone
+        if body._batch is not None:
+            raise AssertionError(f"body '{body.name}' stepped alone while in a batch")
+        real(body, t0, t1)
+
+    monkeypatch.setattr(wsim.PbdBody, "advance", solo)
+    together = run(device, together=True, contact=contact)
+    monkeypatch.undo()
+    assert_same(alone, together, 1e-6)  # float32 positions; atomic sums on a GPU
+    assert together["b"][-1][:, 1].min() > -0.01  # the ground held them
+
+
+def test_batched_spin_keeps_each_bodys_angular_momentum(device):
+    """No gravity, no ground: every body keeps its own momentum and angular momentum; a mix-up of
+    the per-body sums would move one body's spin to another."""
+    def moments(x_all: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray]:
+        return x_all[name][-1].mean(axis=0), x_all[name][-1].std(axis=0)
+
+    alone = run(device, together=False, gravity=(0.0, 0.0, 0.0), ground=False)
+    together = run(device, together=True, gravity=(0.0, 0.0, 0.0), ground=False)
+    assert_same(alone, together, 1e-6)
+    # b spins about y and z, c about x: their shapes move differently (not copies of one state)
+    assert not np.allclose(moments(together, "b")[1], moments(together, "c")[1], rtol=0.05)
+
+
+def test_a_frame_of_touching_steps_the_members_alone():
+    """Two balls thrown at each other with contact on: in the frames they touch, the batch steps
+    its members one by one through the lockstep; the result is the run without batches."""
+    spec = [("a", ball(0.2, 1), dict(position=(-0.3, 0.5, 0.0), velocity=(2.0, 0.0, 0.0), tets="auto")),
+            ("b", ball(0.2, 1), dict(position=(0.3, 0.5, 0.0), velocity=(-2.0, 0.0, 0.0), tets="auto")),
+            ("c", ball(0.2, 1), dict(position=(3.0, 0.5, 0.0), tets="auto"))]
+    plain = run("cpu", together=True, contact=True, spec=spec, batches=False)
+    batched = run("cpu", together=True, contact=True, spec=spec)
+    assert_same(plain, batched, 1e-6)
+    assert batched["a"][-1][:, 0].mean() < batched["b"][-1][:, 0].mean()  # they bounced, not passed
+
+
+def test_batch_continues_from_a_checkpoint(tmp_path):
+    world = wsim.World(fps=30.0, device="cpu", gravity=(0.0, -9.81, 0.0), body_contact=False)
+    world.add_collider(wsim.GroundPlane())
+    bodies = [world.add(wsim.PbdBody(mesh, name=name, **kw)) for name, mesh, kw in SPEC]
+    for _ in range(4):
+        world.step()
+    assert bodies[0]._batch is not None
+    path = world.checkpoint(tmp_path / "four.h5")
+    for _ in range(5):
+        world.step()
+    first = [b.particles() for b in bodies]
+    assert world.restore(path) == 4
+    for _ in range(5):
+        world.step()
+    for b, x in zip(bodies, first):
+        assert np.array_equal(b.particles(), x), b.name
+
+
+def test_bodies_with_other_settings_step_alone():
+    world = wsim.World(fps=30.0, device="cpu", body_contact=False)
+    a = world.add(wsim.PbdBody(ball(0.2, 1), name="a", tets="auto"))
+    b = world.add(wsim.PbdBody(ball(0.2, 1), name="b", position=(1.0, 0.0, 0.0), tets="auto"))
+    c = world.add(wsim.PbdBody(ball(0.2, 1), name="c", position=(2.0, 0.0, 0.0), tets="auto", iterations=3))
+    d = world.add(wsim.PbdBody(ball(0.2, 1), name="d", position=(3.0, 0.0, 0.0)))  # a surface body: its volume
+    world.step()
+    assert a._batch is b._batch is not None and c._batch is None and d._batch is None

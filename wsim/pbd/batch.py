@@ -1,0 +1,182 @@
+"""PbdBatch: PBD bodies of a World stepped in one launch set (issue 21 item 5).
+
+On a GPU a PBD frame is latency bound: one launch per constraint colour, iteration and substep,
+a few microseconds each whatever the particle count (README, PBD costs). K bodies stepped one
+after the other pay K times the launches. A batch concatenates the bodies' particles into one set
+of arrays (each body's positions and velocities become views of its range, so its read-outs,
+checks and checkpoints see the same memory) and merges their constraint families colour by
+colour: colour c of the batch holds colour c of every body. Bodies share no particle, so a merged
+colour is still a set of independent constraints and each projection does exactly the
+arithmetic it did alone; the frame costs the launches of the body with the most colours. The
+momentum restoration sums per body (``kernels.pbd.moments`` by segment): each body's range is
+padded to whole reduction blocks with massless particles that nothing touches.
+
+The launch sequence is ``PbdBody``'s own (its methods run over the batch's arrays). A batch
+forms from bodies that agree on what those launches bake in: device, Gauss-Seidel solver,
+substeps, iterations, damping, drag, contact margin, graph use; bodies with handles or a
+surface volume constraint step alone. In a frame where a member touches another body or another
+method's surface (``wsim.pbd.contact``), every member steps on its own.
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+from typing import TYPE_CHECKING, Sequence
+
+import numpy as np
+import warp as wp
+
+from wsim.kernels import pbd as kp
+from wsim.kernels import pbd_contact as kc
+
+if TYPE_CHECKING:
+    from wsim.pbd.body import PbdBody
+
+
+def batch_key(body: PbdBody) -> tuple | None:
+    """What a batch's launches bake in, equal for its members; None: the body steps alone."""
+    if body.handles or body.model.volume is not None or body.solver != "gauss_seidel":
+        return None
+    return (body._device.alias, body.substeps, body.dt, body.iterations, body.damping, body.drag,
+            body.contact_margin, body.use_graph, body._cpu_serial_sweep, body._block_dim)
+
+
+class PbdBatch:
+    """K >= 2 bound PBD bodies of one ``batch_key``: their particles side by side, their families
+    merged by colour (see the module docstring)."""
+
+    from wsim.pbd.body import PbdBody as _Body
+
+    # the frame's launches are the bodies' own, over the batch's arrays
+    _launch_frame = _Body._launch_frame
+    _substep_begin = _Body._substep_begin
+    _substep_iteration = _Body._substep_iteration
+    _substep_end = _Body._substep_end
+    _launch_family = _Body._launch_family
+    _launch_moments = _Body._launch_moments
+    _moment_blocks = _Body._moment_blocks
+    _prepare_layout = _Body._prepare_layout
+    _upload_frame_inputs = _Body._upload_frame_inputs
+    del _Body
+
+    def __init__(self, bodies: Sequence[PbdBody]) -> None:
+        b0 = bodies[0]
+        self.bodies = list(bodies)
+        self._device = device = b0._device
+        for name in ("iterations", "damping", "drag", "contact_margin", "use_graph", "solver", "omega",
+                     "_cpu_serial_sweep", "_block_dim", "_gravity", "_planes", "_surfaces", "_mesh_surfaces"):
+            setattr(self, name, getattr(b0, name))
+        self.handles = ()
+        self.conserve_angular_momentum = any(b.conserve_angular_momentum for b in bodies)
+        block = int(kp.MOMENT_BLOCK)
+        counts = np.array([b.model.n_particles for b in bodies])
+        first = np.concatenate([[0], np.cumsum(-(-counts // block) * block)])  # whole blocks a body
+        n = int(first[-1])
+        self.model = SimpleNamespace(n_particles=n, volume=None, n_surface=0)
+        seg = np.repeat(np.arange(len(bodies)), np.diff(first))
+        inv_mass = np.zeros(n, dtype=np.float32)
+        for b, f, c in zip(bodies, first, counts):
+            inv_mass[f : f + c] = b.inv_mass.numpy()
+        with wp.ScopedDevice(device):
+            self.x, self.v = wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=wp.vec3)
+            self.x_prev, self.x_pred = wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=wp.vec3)
+            self.dx, self.dxc = wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=wp.vec3)
+            self._acc = self.dx  # Gauss-Seidel: unused
+            self.inv_mass = wp.array(inv_mass, dtype=float)
+            self._handle_slot = wp.full(n, -1, dtype=int)
+            self._handle_targets_d = wp.zeros(1, dtype=wp.vec3)
+            self._seg = wp.array(seg.astype(np.int32), dtype=int)
+            self._seg_first = wp.array(first[:-1].astype(np.int32), dtype=int)
+            self._seg_count = wp.array(counts.astype(np.int32), dtype=int)
+            self._seg_stride = 2 * int(kp.MOMENT_SUMS)
+            self._seg_restore = wp.array(np.array([b.conserve_angular_momentum for b in bodies], dtype=np.int32), dtype=int)
+            self._moments = wp.zeros(len(bodies) * self._seg_stride, dtype=wp.float64)
+            self._families = self._merge_families(first)
+        self._handle_idx = np.zeros(0, dtype=np.int64)
+        self._mesh_colliders: list = []
+        self._contact_mesh = None
+        self._moving: list = []
+        self._layout: tuple[int, float] | None = None
+        self._graph = None
+        for b, f, c in zip(bodies, first, counts):  # each body's state becomes a view of its range
+            x, v = self.x[int(f) : int(f + c)], self.v[int(f) : int(f + c)]
+            wp.copy(x, b.state.x)
+            wp.copy(v, b.state.v)
+            b.state.x, b.state.v = x, v
+            b._graph = None  # its own recorded frame pointed at the old arrays
+            b._batch = self
+
+    def _merge_families(self, first: np.ndarray) -> list:
+        """The bodies' families of each kind as one, colour c of the batch = colour c of every
+        body, particle indices shifted to the body's range; one multiplier array for them all."""
+        from wsim.pbd.body import _DeviceFamily
+
+        kinds = list(dict.fromkeys(f.kind for b in self.bodies for f in b.model.families))
+        merged = []
+        for kind in kinds:
+            parts = [(b, f, int(base)) for b, base in zip(self.bodies, first) for f in b.model.families if f.kind == kind]
+            colours = max(len(f.offsets) - 1 for _, f, _ in parts)
+            idx, rest, comp, offsets = [], [], [], [0]
+            for c in range(colours):
+                for _, f, base in parts:
+                    if c < len(f.offsets) - 1:
+                        lo, hi = int(f.offsets[c]), int(f.offsets[c + 1])
+                        idx.append(np.asarray(f.indices[lo:hi]) + base)
+                        rest.append(f.rest[lo:hi])
+                        comp.append(f.compliance[lo:hi])
+                offsets.append(sum(len(a) for a in idx))
+            indices = np.concatenate(idx).astype(np.int32)
+            merged.append(dict(kind=kind, offsets=np.array(offsets), indices=indices,
+                               rest=np.concatenate(rest), compliance=np.concatenate(comp)))
+        self._lam = wp.zeros(max(sum(len(m["indices"]) for m in merged), 1), dtype=float)
+        out, start = [], 0
+        for m in merged:
+            k = len(m["indices"])
+            out.append(_DeviceFamily(kind=m["kind"], offsets=m["offsets"],
+                                     indices=wp.array(m["indices"], dtype=wp.vec2i if m["indices"].shape[1] == 2 else wp.vec4i),
+                                     rest=wp.array(m["rest"].astype(np.float32), dtype=float),
+                                     compliance=wp.array(m["compliance"].astype(np.float32), dtype=float),
+                                     lam=self._lam[start : start + k], count=wp.zeros(1, dtype=float)))
+            start += k
+        return out
+
+    def steps_together(self) -> bool:
+        """Whether the members can take this frame as a batch (none touches another body or
+        another method's surface)."""
+        return all(not b._moving and b._contact_mesh is None for b in self.bodies)
+
+    def advance(self, t0: float, t1: float) -> None:
+        """Every member from t0 to t1: the batch's frame (recorded as one CUDA graph on a GPU), or
+        each member on its own in a frame where one touches something (``steps_together``)."""
+        if not self.steps_together():
+            for b in self.bodies:
+                b.advance(t0, t1)
+            return
+        frame_dt = round(t1 - t0, 12)  # as PbdBody.advance: one layout and graph, not one a frame
+        substeps = self.bodies[0].substeps_for(frame_dt)
+        h = frame_dt / substeps
+        if self._layout != (substeps, h):
+            self._prepare_layout(substeps, h)
+        device = self._device
+        with wp.ScopedDevice(device):
+            self._upload_frame_inputs(t0, substeps, h)
+            if device.is_cuda and self.use_graph:
+                if self._graph is None:
+                    wp.load_module(kp, device=device)
+                    wp.load_module(kc, device=device)
+                    with wp.ScopedCapture(device=device) as capture:
+                        self._launch_frame(substeps, h)
+                    self._graph = capture.graph
+                wp.capture_launch(self._graph)
+            else:
+                self._launch_frame(substeps, h)
+
+
+def batches(bodies: Sequence[PbdBody]) -> list[PbdBatch]:
+    """``PbdBatch``es of the bound bodies that share a ``batch_key``, two or more to a batch."""
+    by_key: dict[tuple, list[PbdBody]] = {}
+    for b in bodies:
+        key = batch_key(b)
+        if key is not None:
+            by_key.setdefault(key, []).append(b)
+    return [PbdBatch(group) for group in by_key.values() if len(group) > 1]
