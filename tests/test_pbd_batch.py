@@ -134,3 +134,16 @@ def test_bodies_with_other_settings_step_alone():
     d = world.add(wsim.PbdBody(ball(0.2, 1), name="d", position=(3.0, 0.0, 0.0)))  # a surface body: its volume
     world.step()
     assert a._batch is b._batch is not None and c._batch is None and d._batch is None
+
+
+def test_a_diverged_member_is_named():
+    """The batch checks all members in one launch; a non-finite member is then found and named."""
+    world = wsim.World(fps=30.0, device="cpu", body_contact=False)
+    bodies = [world.add(wsim.PbdBody(mesh, name=name, **kw)) for name, mesh, kw in SPEC]
+    world.step()
+    assert bodies[1]._batch is not None
+    v = bodies[1].state.v.numpy()
+    v[3] = np.nan
+    bodies[1].state.v.assign(v)
+    with pytest.raises(wsim.SimulationDiverged, match="'b'"):
+        world.step()

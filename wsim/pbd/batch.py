@@ -98,6 +98,9 @@ class PbdBatch:
         self._moving: list = []
         self._layout: tuple[int, float] | None = None
         self._graph = None
+        self.flags = wp.zeros(2, dtype=int, device=device)
+        self._checked: tuple | None = None  # (frame, time) of the last check (``all_finite``)
+        self._finite = True
         for b, f, c in zip(bodies, first, counts):  # each body's state becomes a view of its range
             x, v = self.x[int(f) : int(f + c)], self.v[int(f) : int(f + c)]
             wp.copy(x, b.state.x)
@@ -105,6 +108,7 @@ class PbdBatch:
             b.state.x, b.state.v = x, v
             b._graph = None  # its own recorded frame pointed at the old arrays
             b._batch = self
+            b._batch_first = int(f)  # its first particle in the batch's arrays
 
     def _merge_families(self, first: np.ndarray) -> list:
         """The bodies' families of each kind as one, colour c of the batch = colour c of every
@@ -139,6 +143,20 @@ class PbdBatch:
                                      lam=self._lam[start : start + k], count=wp.zeros(1, dtype=float)))
             start += k
         return out
+
+    def all_finite(self, body: PbdBody, frame: int, time: float) -> bool:
+        """Whether every member's positions and velocities are finite: one launch and one
+        read-back for all members, made when the first member is checked and reused by the others
+        checked for the same frame and time (the World checks every body in order after each
+        frame; checked per member, one launch and a synchronization each, 100 bodies spent about
+        as long on the checks as on their frame). When it is False each member checks itself, to
+        name the body."""
+        if body is self.bodies[0] or self._checked != (frame, time):
+            self.flags.zero_()
+            wp.launch(kp.check_finite, dim=self.model.n_particles, inputs=[self.x, self.v, self.flags], device=self._device)
+            self._finite = not bool(self.flags.numpy().any())
+            self._checked = (frame, time)
+        return self._finite
 
     def steps_together(self) -> bool:
         """Whether the members can take this frame as a batch (none touches another body or

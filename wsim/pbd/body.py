@@ -801,6 +801,8 @@ class PbdBody(Body):
                               self._seg_first, self._seg_stride, self._seg_restore])
 
     def check_finite(self, frame: int, time: float) -> None:
+        if self._batch is not None and self._batch.all_finite(self, frame, time):  # one check for the whole batch
+            return
         self.flags.zero_()  # the array's own device
         wp.launch(kp.check_finite, dim=self.model.n_particles, inputs=[self.x, self.v, self.flags], device=self._device)
         bad = self.flags.numpy()
