@@ -28,6 +28,7 @@ import warp as wp
 
 from wsim.kernels import pbd as kp
 from wsim.kernels import pbd_contact as kc
+from wsim.pbd.model import FAMILY_KINDS
 
 if TYPE_CHECKING:
     from wsim.pbd.body import PbdBody
@@ -115,7 +116,10 @@ class PbdBatch:
         body, particle indices shifted to the body's range; one multiplier array for them all."""
         from wsim.pbd.body import _DeviceFamily
 
-        kinds = list(dict.fromkeys(f.kind for b in self.bodies for f in b.model.families))
+        # every body projects its families in the model's fixed kind order: the batch keeps it (an
+        # order by first appearance would reorder a body's sweep by which bodies came before it)
+        present = {f.kind for b in self.bodies for f in b.model.families}
+        kinds = [k for k in FAMILY_KINDS if k in present]
         merged = []
         for kind in kinds:
             parts = [(b, f, int(base)) for b, base in zip(self.bodies, first) for f in b.model.families if f.kind == kind]

@@ -44,7 +44,9 @@ def _host_states(bodies: Sequence[PbdBody]) -> list[tuple[np.ndarray, np.ndarray
     for b in bodies:
         n = b.model.n_particles
         if b._batch is not None:
-            X, V = copies.setdefault(id(b._batch), (b._batch.x.numpy(), b._batch.v.numpy()))
+            if id(b._batch) not in copies:  # (not setdefault: its default would copy for every member)
+                copies[id(b._batch)] = (b._batch.x.numpy(), b._batch.v.numpy())
+            X, V = copies[id(b._batch)]
             f = b._batch_first
             out.append((X[f : f + b.model.n_surface], V[f : f + n]))
         else:
