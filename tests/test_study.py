@@ -1,5 +1,6 @@
 """``wsim study`` (issue 22 item 3): knob studies through the sweep engine, errors against a
-high-accuracy reference, Pareto fronts, one report (Markdown, JSON, PNG).
+reference whose uncertainty a reference check measures, Pareto fronts, one report (Markdown,
+JSON, PNG).
 
 The end-to-end tests run tiny grids of the PBD and PDE studies (a few frames, coarse meshes) on
 the device; the physics they assert is convergence (more substeps, denser keyframes: closer to
@@ -17,7 +18,7 @@ import pytest
 from wsim.errors import InvalidParameter
 from wsim.studies import pbd
 from wsim.studies.common import Mode, bytes_held, match_points
-from wsim.study import load_study, pareto_front, plan, run_studies
+from wsim.study import RESOLVE, Variant, analyse, load_study, pareto_front, plan, run_studies
 from wsim.sweep import sweep, variant_name
 
 
@@ -85,25 +86,54 @@ def test_bytes_held_counts_each_array_once():
 
     m = sparse.random(50, 50, density=0.1, format="csr", random_state=0)
     assert bytes_held([m]) == (0, m.data.nbytes + m.indices.nbytes + m.indptr.nbytes)
+    deep: list = [m]
+    for _ in range(5):  # at the depth bound (6), where the compressed BEM operators sit: counted in full
+        deep = [deep]
+    assert bytes_held(deep) == bytes_held([m])
+
+
+def test_a_compressed_bem_body_counts_its_compressed_operators(device):
+    """The compressed history sits below the walk's depth bound (body, stepper, history, tuple,
+    matrix, sparse C): it counts in full, as its own ``nbytes`` says, on top of the dense operators
+    the body keeps."""
+    import trimesh
+
+    import wsim
+
+    world = wsim.World(fps=50.0, gravity=(0.0, 0.0, 0.0), device=device)
+    body = world.add(wsim.BemBody(trimesh.creation.icosphere(subdivisions=1, radius=0.1),
+                                  wsim.ElasticMaterial(mu=3.0e4, nu=0.45, rho=1000.0), 0.004, compression=4,
+                                  cache=False, progress=False))
+    history = body._so.compressed
+    assert history is not None and history.nbytes > 0
+    assert bytes_held(history) == (0, history.nbytes)
+    dense = sum(bytes_held(body.operators))
+    assert dense > 0 and sum(bytes_held(body)) >= dense + history.nbytes
 
 
 def test_a_tiny_pbd_study_end_to_end(device, tmp_path):
-    """Reference, default (10 substeps) and 3 and 20 substeps of the beam at one mesh: the error
-    falls as substeps rise (XPBD converges to the reference's many substeps), the reference's is
-    0, the JSON and Markdown parse, each front is non-dominated, the errors are the stored
-    signatures' largest distance over the beam's length."""
+    """Reference, its check (substeps doubled), default (10 substeps) and 3 and 20 substeps of the
+    beam at one mesh: the error falls as substeps rise (XPBD converges to the reference's many
+    substeps), the reference check moves the reference less than any variant lies from it (the
+    reference resolves them), the JSON and Markdown parse, each front is non-dominated, the errors
+    are the stored signatures' largest distance over the beam's length."""
     mode = Mode(default={"divisions": 1}, grid={"substeps": [3, 20]}, reference={"substeps": 80, "iterations": 4},
-                frames=8)
+                frames=8, check={"substeps": 160})
     report = run_studies(["pbd"], tmp_path, device=device, engine="local", modes={"pbd": mode}, log=lambda s: None)
     on_disk = json.loads((tmp_path / "study.json").read_text())
     assert on_disk["studies"]["pbd"]["fronts"] == report["studies"]["pbd"]["fronts"]
     s = on_disk["studies"]["pbd"]
     rows = {(r["role"], r["value"]): r for r in s["variants"]}
     assert all(r["status"] == "ok" for r in s["variants"])
-    ref, default = rows[("reference", None)], rows[("default", None)]
+    ref, default, check = rows[("reference", None)], rows[("default", None)], rows[("check", None)]
     worse, better = rows[("knob", 3)], rows[("knob", 20)]
     assert ref["error"] == 0.0
     assert worse["error"] > default["error"] > better["error"] > 0.0
+    # the uncertainty is the check's distance from the reference, and the variants stand clear of it
+    assert s["reference_uncertainty"] == check["error"] == s["reference_check"]["uncertainty"]
+    assert 0.0 < check["error"] < better["error"] / RESOLVE
+    assert all(r["resolved"] is True for r in (default, worse, better)) and check["resolved"] is None
+    assert all(check["variant"] not in front for front in s["fronts"].values())
     # the error is what the sweep stored: largest probe distance over the beam's length
     runs = tmp_path / "pbd"
     sig = {r["variant"]: np.asarray(json.loads((runs / f"{r['variant']}.json").read_text())["metrics"]["signature"])
@@ -111,10 +141,10 @@ def test_a_tiny_pbd_study_end_to_end(device, tmp_path):
     assert sig[worse["variant"]].shape == (8, 28, 3)
     expect = np.linalg.norm(sig[worse["variant"]] - sig[ref["variant"]], axis=-1).max() / pbd.LENGTH
     assert worse["error"] == pytest.approx(expect, rel=1e-12)
-    assert len((runs / "sweep.jsonl").read_text().splitlines()) == 4  # the warm-up run is not recorded
+    assert len((runs / "sweep.jsonl").read_text().splitlines()) == 5  # the warm-up run is not recorded
     assert not list(runs.glob("*.usdc"))  # studies write no USD
     for cost, front in s["fronts"].items():
-        pts = [r for r in s["variants"] if r["role"] != "reference" and r["error"] is not None]
+        pts = [r for r in s["variants"] if r["role"] in ("default", "knob") and r["error"] is not None]
         costs, errors = [r["costs"][cost] for r in pts], [r["error"] for r in pts]
         for name in front:
             i = next(k for k, r in enumerate(pts) if r["variant"] == name)
@@ -122,6 +152,7 @@ def test_a_tiny_pbd_study_end_to_end(device, tmp_path):
         assert ref["variant"] not in front
     md = (tmp_path / "study.md").read_text()
     assert "## PBD" in md and "| **reference** | 0 |" in md and "`substeps=3`" in md
+    assert "| **reference check** |" in md and "Reference check, `substeps=160` over the reference" in md
     assert all(math.isfinite(r["costs"]["ms_per_frame"]) and r["costs"]["ms_per_frame"] > 0 for r in s["variants"])
     try:
         import matplotlib  # noqa: F401
@@ -129,6 +160,41 @@ def test_a_tiny_pbd_study_end_to_end(device, tmp_path):
         assert "plots skipped" in md
     else:
         assert (tmp_path / "study_pbd.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and "![pbd](study_pbd.png)" in md
+
+
+def test_errors_within_twice_the_reference_uncertainty_are_not_resolved():
+    """From records alone: the check's distance from the reference is the uncertainty u; an error
+    below 2u is marked not resolved, one above resolved; no setting is named for a target error
+    below u, and a setting named under a target but below 2u is said to be unresolved."""
+    _, spec = load_study("pbd")
+    u = 0.004  # [fraction of the beam's length]: the check lies 0.4 % from the reference
+    offsets = {"reference": 0.0, "check": u, "default": 10 * u, "close": 1.5 * u, "far": 3 * u}
+    variants = [Variant("default", None, None, {"substeps": 10}), Variant("reference", None, None, {"substeps": 100}),
+                Variant("check", None, None, {"substeps": 200}), Variant("knob", "substeps", 60, {"substeps": 60}),
+                Variant("knob", "substeps", 20, {"substeps": 20})]
+    keys = ["default", "reference", "check", "close", "far"]
+    cost = {"default": 1.0, "reference": 9.0, "check": 18.0, "close": 6.0, "far": 2.0}
+    records = {}
+    for v, k in zip(variants, keys):
+        sig = np.zeros((3, 28, 3))
+        sig[1, 5, 0] = offsets[k] * spec.scale  # one probe, one frame, offset along x
+        records[variant_name("pbd", v.params)] = {"status": "ok", "metrics": {
+            "signature": sig.tolist(), "ms_per_frame": cost[k], "model_mb": 1.0}}
+    result = analyse(spec, variants, records)
+    rows = dict(zip(keys, result["variants"]))
+    assert result["reference_uncertainty"] == pytest.approx(u, rel=1e-12)
+    assert rows["close"]["error"] < RESOLVE * u < rows["far"]["error"]
+    assert (rows["close"]["resolved"], rows["far"]["resolved"], rows["default"]["resolved"]) == (False, True, True)
+    below, at_1, at_10 = result["advice"]  # targets 0.1 %, 1 %, 10 %; u = 0.4 %
+    assert "cannot resolve" in below and "substeps" not in below
+    assert "substeps=60" in at_1 and "not resolved" in at_1  # 0.6 %: under 1 %, but under 2u too
+    assert "the default" in at_10 and "not resolved" not in at_10
+    # with no check the uncertainty is unknown, and the advice says so
+    unknown = analyse(spec, [variants[i] for i in (0, 1, 3, 4)],
+                      {variant_name("pbd", variants[i].params): records[variant_name("pbd", variants[i].params)]
+                       for i in (0, 1, 3, 4)})
+    assert unknown["reference_uncertainty"] is None and all(r["resolved"] is None for r in unknown["variants"])
+    assert "unknown" in unknown["advice"][-1]
 
 
 def test_the_pde_study_measures_its_own_error(device, tmp_path):
@@ -141,6 +207,7 @@ def test_the_pde_study_measures_its_own_error(device, tmp_path):
     rows = {(r["role"], r["value"]): r for r in s["variants"]}
     assert rows[("reference", None)]["error"] < 1e-6  # a micrometre over the 1.6 m creature: float32 output
     assert rows[("knob", 6)]["error"] > rows[("knob", 2)]["error"] > 0.0
+    assert s["reference_uncertainty"] == 0.0 and s["reference_check"]["exact"]  # measured against the truth
     assert rows[("knob", 6)]["costs"]["data_ratio"] < rows[("knob", 2)]["costs"]["data_ratio"] < 1.0
     assert "| setting | error | playback ms per frame |" in (tmp_path / "study.md").read_text()  # no "vs default"
 
@@ -179,12 +246,18 @@ def test_study_command_line_refuses_bad_names(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_the_quick_report_runs_every_study(tmp_path):
-    """``wsim study --quick`` on the CPU: every study's reference and variants run (about 1.5
-    minutes on a 2-core CPU with Warp's kernels compiled)."""
+    """``wsim study --quick`` on the CPU: every study's reference, check and variants run, and
+    each reference with a check resolves its default: the check moves the reference by less than
+    half the default's distance from it (else the study's errors would measure the reference)."""
     report = run_studies(None, tmp_path, quick=True, device="cpu", engine="local", log=lambda s: None)
     assert list(report["studies"]) == ["bem", "eol", "pbd", "pde", "coupling"]
     for name, s in report["studies"].items():
         assert s["reference_ok"], name
-        ref = next(r for r in s["variants"] if r["role"] == "reference")
-        assert ref["error"] == pytest.approx(0.0, abs=1e-6)
         assert all(r["status"] == "ok" for r in s["variants"]), name
+        default = next(r for r in s["variants"] if r["role"] == "default")
+        u = s["reference_uncertainty"]
+        if s["check"]:
+            assert u is not None and default["error"] > RESOLVE * u, name
+            assert default["resolved"] is True, name
+        else:  # PDE: exact; coupling: unknown, and said so
+            assert (u == 0.0) if s["reference_check"]["exact"] else (u is None), name

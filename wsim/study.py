@@ -1,13 +1,17 @@
 """``wsim study``: the speed/accuracy report of every method's knobs, through the sweep engine.
 
 Each study (``wsim.studies``: ``bem``, ``eol``, ``pbd``, ``pde``, ``coupling``) is a scene file
-with a declared knob grid. For each, the variants are: the default, the high-accuracy reference,
-and every knob of the grid varied alone from the default (one knob at a time, not the product,
-so the cost grows with the sum of the grid's lengths). They run through ``wsim.sweep.sweep``, in
-this process by default (after an unrecorded warm-up run, so no variant's timing holds kernel
+with a declared knob grid. For each, the variants are: the default, the reference (the finest
+setting the study affords), the reference check (the reference refined one notch in its dominant
+discretization, where one exists) and every knob of the grid varied alone from the default (one
+knob at a time, not the product, so the cost grows with the sum of the grid's lengths). They run
+through ``wsim.sweep.sweep``, in this process by default (after an unrecorded warm-up run that
+also compiles every Warp module the build imported, so no variant's timing holds kernel
 compilation) or as Ray tasks, without USD. A variant's error is the largest distance between its
 signature (probe points after every frame) and the reference's, over the study's length scale;
-the PDE study measures its own error against the frames it rebuilds. Costs are the study's own timing (frames after the first, probe reads
+the PDE study measures its own error against the frames it rebuilds. The reference check's error
+is the reference's uncertainty: a variant's error below twice it is not resolved by the reference
+(the report marks it, and names no setting for a target error below it). Costs are the study's own timing (frames after the first, probe reads
 excluded), the bytes the bodies hold and a study's extra measures (the BEM operator build).
 
 The report (``DIR/study.json``, ``DIR/study.md``, ``DIR/study_<name>.png``) holds, per study,
@@ -39,16 +43,18 @@ import numpy as np
 
 from wsim.errors import InvalidParameter
 from wsim.studies.common import Mode, StudySpec
-from wsim.sweep import ENGINES, sweep, variant_name
+from wsim.sweep import ENGINES, _done, _warm, sweep, variant_name
 
 STUDIES = ("bem", "eol", "pbd", "pde", "coupling")
+RESOLVE = 2.0  # an error below RESOLVE x the reference's uncertainty is not resolved by the reference
 
 
 @dataclass(frozen=True)
 class Variant:
-    """One setting of a study: ``role`` "reference", "default" or "knob" (``knob`` = ``value``,
-    the others at the default); ``params`` are the build keywords that differ from build's own
-    defaults (the sweep's variant, named by them)."""
+    """One setting of a study: ``role`` "reference", "check" (the reference check: the reference
+    refined one notch), "default" or "knob" (``knob`` = ``value``, the others at the default);
+    ``params`` are the build keywords that differ from build's own defaults (the sweep's variant,
+    named by them)."""
 
     role: str
     knob: str | None
@@ -72,10 +78,12 @@ def _build_defaults(build: Callable[..., Any]) -> dict[str, Any]:
 
 
 def plan(build: Callable[..., Any], spec: StudySpec, mode: Mode, knobs: Sequence[str] | None = None) -> list[Variant]:
-    """The study's variants: default first (the in-process warm-up runs it), the reference, then
-    each knob's values in the grid's order. ``knobs`` keeps only those knobs' variants."""
+    """The study's variants: default first (the in-process warm-up runs it), the reference, the
+    reference check (where the mode has one), then each knob's values in the grid's order.
+    ``knobs`` keeps only those knobs' variants."""
     defaults = _build_defaults(build)
-    for what, names in (("default", mode.default), ("reference", mode.reference), ("grid", mode.grid)):
+    for what, names in (("default", mode.default), ("reference", mode.reference), ("reference check", mode.check),
+                        ("grid", mode.grid)):
         for n in names:
             if n not in defaults:
                 raise InvalidParameter(f"study '{spec.name}': {what} sets {n!r}, which its build() does not take "
@@ -92,6 +100,11 @@ def plan(build: Callable[..., Any], spec: StudySpec, mode: Mode, knobs: Sequence
         return {n: full[n] for n in defaults if full[n] != defaults[n]}  # build's order: stable names
 
     out = [Variant("default", None, None, canonical({})), Variant("reference", None, None, canonical(mode.reference))]
+    if mode.check:
+        check = canonical({**mode.reference, **mode.check})
+        if check == out[1].params:
+            raise InvalidParameter(f"study '{spec.name}': the reference check {mode.check} is the reference itself")
+        out.append(Variant("check", None, None, check))
     out += [Variant("knob", k, v, canonical({k: v})) for k, values in grid.items() for v in values]
     return out
 
@@ -152,12 +165,27 @@ def analyse(spec: StudySpec, variants: Sequence[Variant], records: dict[str, dic
             if default_sig is not None and scale and sig is not None and sig.shape == default_sig.shape:
                 row["change_vs_default"] = _distance(sig, default_sig) / scale
         rows.append(row)
-    # the Pareto front per cost, over the measured settings (the reference is the yardstick)
+    # the reference's uncertainty: how far refining it one notch moves it (the reference check's
+    # error); 0 where the study measures against the truth; None (unknown) where no check exists
+    check_row = next((r for r in rows if r["role"] == "check"), None)
+    if spec.exact_reference:
+        uncertainty: float | None = 0.0
+    elif check_row is not None and check_row["error"] is not None and math.isfinite(check_row["error"]):
+        uncertainty = check_row["error"]
+    else:
+        uncertainty = None
+    for row in rows:
+        row["resolved"] = None
+        if uncertainty is not None and row["role"] in ("default", "knob") and row["error"] is not None:
+            row["resolved"] = bool(row["error"] >= RESOLVE * uncertainty)
+    # the Pareto front per cost, over the measured settings (the reference is the yardstick, its
+    # check measures the yardstick)
     fronts: dict[str, list[str]] = {}
     seen: set[str] = set()
     candidates = []
+    special = {ref_name} | ({check_row["variant"]} if check_row is not None else set())
     for row in rows:
-        if row["role"] != "reference" and row["variant"] not in seen and row["variant"] != ref_name \
+        if row["role"] in ("default", "knob") and row["variant"] not in seen and row["variant"] not in special \
                 and row["error"] is not None and math.isfinite(row["error"]):
             seen.add(row["variant"])
             candidates.append(row)
@@ -168,8 +196,9 @@ def analyse(spec: StudySpec, variants: Sequence[Variant], records: dict[str, dic
     for row in rows:
         row["on_front"] = [c for c, f in fronts.items() if row["variant"] in f]
     reference_ok = records.get(ref_name, {}).get("status") == "ok"
-    return {"scale": scale, "scale_note": scale_note, "reference_ok": reference_ok, "variants": rows, "fronts": fronts,
-            "advice": _advice(spec, candidates)}
+    return {"scale": scale, "scale_note": scale_note, "reference_ok": reference_ok,
+            "reference_uncertainty": uncertainty, "check_ok": None if check_row is None else check_row["status"] == "ok",
+            "variants": rows, "fronts": fronts, "advice": _advice(spec, candidates, uncertainty)}
 
 
 def _setting(row: dict) -> str:
@@ -190,8 +219,10 @@ def _pct(e: float | None) -> str:
     return f"{100.0 * e:.3g} %"
 
 
-def _advice(spec: StudySpec, candidates: list[dict]) -> list[str]:
-    """One sentence per target error: the cheapest measured setting (by the first cost) under it."""
+def _advice(spec: StudySpec, candidates: list[dict], uncertainty: float | None = None) -> list[str]:
+    """One sentence per target error: the cheapest measured setting (by the first cost) under it;
+    none for a target below the reference's uncertainty (the reference cannot tell such errors
+    apart), and a setting whose error the reference does not resolve is said to be so."""
     cost = next(iter(spec.costs))
     label = spec.costs[cost]
     priced = [r for r in candidates if isinstance(r["costs"].get(cost), (int, float))]
@@ -199,15 +230,24 @@ def _advice(spec: StudySpec, candidates: list[dict]) -> list[str]:
         return []
     out = []
     for target in spec.advice_targets:
+        if uncertainty is not None and target <= uncertainty:
+            out.append(f"Error below {_pct(target)}: the reference cannot resolve it (its uncertainty, the reference "
+                       f"check's distance from it, is {_pct(uncertainty)}).")
+            continue
         ok = sorted((r for r in priced if r["error"] <= target), key=lambda r: r["costs"][cost])
         if ok:
             best = ok[0]
+            caveat = "" if best.get("resolved") is not False else \
+                f"; not resolved: below {RESOLVE:g}x the reference's uncertainty ({_pct(uncertainty)})"
             out.append(f"Error below {_pct(target)}: {_setting(best)} is the cheapest measured "
-                       f"({_pct(best['error'])}, {best['costs'][cost]:.4g} {label}).")
+                       f"({_pct(best['error'])}, {best['costs'][cost]:.4g} {label}{caveat}).")
         else:
             low = min(priced, key=lambda r: r["error"])
             out.append(f"Error below {_pct(target)}: no setting measured reaches it (the lowest: {_pct(low['error'])}, "
                        f"{_setting(low)}).")
+    if uncertainty is None:
+        out.append("The reference's own error is unknown (it has no reference check): the errors are distances "
+                   "from it, not from the exact answer.")
     return out
 
 
@@ -222,12 +262,22 @@ def run_study(name: str, out_dir: str | os.PathLike[str], *, quick: bool = False
     mode = mode or (spec.quick if quick else spec.full)
     variants = plan(module.build, spec, mode, knobs)
     unique = list({variant_name(spec.name, v.params): v.params for v in variants}.items())
-    say(f"wsim study: {name}: {len(unique)} runs ({sum(len(x) for x in mode.grid.values())} knob settings, the default "
-        f"and the reference), {mode.frames} frames each")
+    say(f"wsim study: {name}: {len(unique)} runs ({sum(len(x) for x in mode.grid.values())} knob settings, the default, "
+        f"the reference{' and its check' if mode.check else ''}), {mode.frames} frames each")
     t = time.perf_counter()
-    records = sweep(module.__file__, [p for _, p in unique], Path(out_dir) / name, device=device, frames=mode.frames,
-                    engine=engine, address=address, gpus_per_task=gpus_per_task, usd=False, warm_full=True,
-                    log=lambda s: say(s.replace("wsim sweep:", f"wsim study: {name}:", 1)))
+    runs = Path(out_dir) / name
+    in_process = engine == "local" or (engine == "auto" and not _ray_installed())
+    pending = [p for n, p in unique if _done(runs, n, p, mode.frames, device, False) is None]
+    if in_process and pending:
+        # the sweep's own in-process warm-up runs the first variant only: a Warp module that only
+        # another variant reaches (the compression kernels) would compile inside that variant's
+        # timed build; force-loading every module the build imported keeps compiling out of all
+        secs = _warm(module.__file__, pending[0], device, mode.frames, load_all=True)
+        say(f"wsim study: {name}: a warm-up run of {variant_name(spec.name, pending[0])} and every Warp module its "
+            f"build imported ({secs:.1f} s, not recorded)")
+    records = sweep(module.__file__, [p for _, p in unique], runs, device=device, frames=mode.frames,
+                    engine=engine, address=address, gpus_per_task=gpus_per_task, usd=False, warm=not in_process,
+                    warm_full=True, log=lambda s: say(s.replace("wsim sweep:", f"wsim study: {name}:", 1)))
     seconds = time.perf_counter() - t
     result = analyse(spec, variants, {r["variant"]: r for r in records})
     # the settings in full (build's defaults too) of the knobs the study varies or the reference sets
@@ -235,9 +285,18 @@ def run_study(name: str, out_dir: str | os.PathLike[str], *, quick: bool = False
     full = {**_build_defaults(module.build), **mode.default}
     result["default_settings"] = {k: full[k] for k in shown}
     result["reference_settings"] = {k: {**full, **mode.reference}[k] for k in shown}
+    result["reference_check"] = {"settings": dict(mode.check), "note": spec.check_note,
+                                 "uncertainty": result["reference_uncertainty"], "exact": spec.exact_reference}
     return {"name": spec.name, "title": spec.title, "scenario": spec.scenario, "error": spec.error, "notes": spec.notes,
             "knobs": spec.knobs, "costs": spec.costs, "frames": mode.frames, "default": mode.default,
-            "reference": mode.reference, "grid": mode.grid, "seconds": round(seconds, 2), **result}
+            "reference": mode.reference, "check": mode.check, "grid": mode.grid, "seconds": round(seconds, 2), **result}
+
+
+def _ray_installed() -> bool:
+    """Whether the sweep's engine "auto" would use Ray (it runs in-process without it)."""
+    import importlib.util
+
+    return importlib.util.find_spec("ray") is not None
 
 
 def run_studies(names: Sequence[str] | None, out_dir: str | os.PathLike[str], *, quick: bool = False,
@@ -360,7 +419,8 @@ def write_plots(report: dict[str, Any], out: Path) -> dict[str, str]:
     files = {}
     for name, s in report["studies"].items():
         rows = [r for r in s["variants"] if r["error"] is not None and math.isfinite(r["error"])
-                and r["role"] != "reference"]
+                and r["role"] in ("default", "knob")]
+        u = s.get("reference_uncertainty")
         if not rows:
             continue
         costs = list(s["costs"])
@@ -387,6 +447,8 @@ def write_plots(report: dict[str, Any], out: Path) -> dict[str, str]:
                 ys = [100.0 * max(r["error"], floor) for r in front]
                 ax.step(xs, ys, where="post", color="0.3", linewidth=1.2, zorder=1)
                 ax.plot(xs, ys, "o", markerfacecolor="none", markeredgecolor="k", markersize=10, zorder=4)
+            if u:  # errors under this line are not resolved by the reference
+                ax.axhline(100.0 * RESOLVE * u, color="0.5", linestyle=":", linewidth=1.0, zorder=0)
             ax.set_xscale("log")
             ax.set_yscale("log")
             for axis in (ax.xaxis, ax.yaxis):  # plain numbers at 1, 2, 5 x 10^k: no crowded minor labels
@@ -401,6 +463,9 @@ def write_plots(report: dict[str, Any], out: Path) -> dict[str, str]:
         handles += [plt.Line2D([], [], marker="*", linestyle="", color="k", markersize=10, label="default"),
                     plt.Line2D([], [], marker="o", markerfacecolor="none", markeredgecolor="k", color="0.3",
                                markersize=9, label="Pareto front")]
+        if u:
+            handles.append(plt.Line2D([], [], color="0.5", linestyle=":",
+                                      label=f"{RESOLVE:g}x reference uncertainty (below: not resolved)"))
         fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
         fig.suptitle(f"{s['title']} ({'quick' if report['quick'] else 'full'}; {', '.join(report['device'])})",
                      fontsize=9)
@@ -427,17 +492,21 @@ def markdown(report: dict[str, Any]) -> str:
               f"{report['seconds']:.0f} s in all, " + _engine_text(report["engine"]) + "."
               + (f" Command: `{report['command']}`." if report.get("command") else ""), ""]
     lines += ["**How to read it.** Each study simulates one scene with several settings of its method's knobs: "
-              "the default, a high-accuracy reference, and each knob varied alone from the default (one at a time, "
-              "not every combination). *Error* is how far a setting's result lies from the reference's (each "
+              "the default, a reference (the finest setting the study affords), and each knob varied alone from the "
+              "default (one at a time, not every combination). *Error* is how far a setting's result lies from the "
+              "reference's (each "
               "study says what it measures and over which length); *vs default* is how far it moved from the "
               "default's, which shows a knob's own effect where the other knobs' error dominates. Costs are "
               "measured per setting: milliseconds per frame (mean over the frames after the first, which binds "
               "the bodies and loads the kernels; probe reads not counted), the bytes of the arrays the bodies hold "
               "(operators, model, grid, state), and where a study says so a one-off cost. The *Pareto front* of a "
               "cost is the settings that no other setting beats on both error and that cost (marked in the table "
-              "and drawn as a step line): pick from it. The reference's own error is not measured (it is the "
-              "yardstick); where a knob converges, the error of the setting nearest to the reference's indicates "
-              "its size. One knob at a time does not show how knobs interact.", ""]
+              "and drawn as a step line): pick from it. The reference is not exact: the *reference check* refines "
+              "it one notch in its dominant discretization (e.g. half its time step), and its distance from the "
+              "reference is the reference's *uncertainty*. An error below "
+              f"{RESOLVE:g}x the uncertainty is marked *(not resolved)*: the reference cannot tell that setting "
+              "from the exact answer or from a setting as close, and no setting is named for a target error "
+              "below the uncertainty. One knob at a time does not show how knobs interact.", ""]
     if report.get("plots_skipped"):
         lines += [f"*{report['plots_skipped']}.*", ""]
     for name, s in report["studies"].items():
@@ -445,18 +514,21 @@ def markdown(report: dict[str, Any]) -> str:
         scale = f" ({s['scale_note']})" if s.get("scale_note") else ""
         lines += [f"Error: {s['error']}{scale}. Default: {_params(s['default_settings'])}; reference: "
                   f"{_params(s['reference_settings'])}; {s['frames']} frames; {s['seconds']:.0f} s.", ""]
+        lines += [_check_text(s), ""]
         cost_keys = list(s["costs"])
         vs = s.get("scale") is not None  # a signature to compare with the default's
         head = ["setting", "error"] + ["vs default"] * vs + [s["costs"][c] for c in cost_keys] + ["front"]
         lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         for r in s["variants"]:
-            label = {"reference": "**reference**", "default": "**default**"}.get(r["role"]) or \
-                f"`{r['knob']}={_fmt_value(r['value'])}`"
+            label = {"reference": "**reference**", "default": "**default**", "check": "**reference check**"}.get(
+                r["role"]) or f"`{r['knob']}={_fmt_value(r['value'])}`"
             if r["status"] != "ok":
                 cells = [label, f"failed: {r.get('failure', '')[:120]}"] + ["-"] * (vs + len(cost_keys)) + [""]
             else:
                 front = ", ".join(s["costs"][c].split(" [")[0].split(",")[0] for c in r["on_front"])
-                cells = [label, _pct(r["error"])] + [_pct(r["change_vs_default"])] * vs + \
+                error = _pct(r["error"]) + {"check": " (uncertainty)"}.get(r["role"], "") + \
+                    (" (not resolved)" if r.get("resolved") is False else "")
+                cells = [label, error] + [_pct(r["change_vs_default"])] * vs + \
                     [_num(r["costs"].get(c)) for c in cost_keys] + [front]
             lines.append("| " + " | ".join(cells) + " |")
         lines.append("")
@@ -467,6 +539,22 @@ def markdown(report: dict[str, Any]) -> str:
             lines += [f"Note: {s['notes']}", ""]
         lines += ["Knobs: " + "; ".join(f"`{k}`: {v}" for k, v in s["knobs"].items() if k in s["grid"]) + ".", ""]
     return "\n".join(lines)
+
+
+def _check_text(s: dict[str, Any]) -> str:
+    """The sentence on the reference's uncertainty under a study's heading."""
+    check = s.get("reference_check") or {}
+    u, note = check.get("uncertainty"), check.get("note") or ""
+    if check.get("exact"):
+        return f"Reference check: none needed: {note or 'the error is measured against the truth'}."
+    if not check.get("settings"):
+        return (f"Reference check: {note or 'none declared'}. The reference's own error is unknown: the errors "
+                "below are distances from it, not from the exact answer.")
+    what = f"{_params(check['settings'])} over the reference" + (f" ({note})" if note else "")
+    if u is None:
+        return f"Reference check, {what}: it failed, so the reference's uncertainty is unknown."
+    return (f"Reference check, {what}: it moves the reference by {_pct(u)}, the reference's uncertainty; errors "
+            f"below {_pct(RESOLVE * u)} are not resolved.")
 
 
 def _engine_text(engine: str) -> str:

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import ast
 import contextlib
+import gc
 import hashlib
 import inspect
 import itertools
@@ -164,6 +165,8 @@ def run_variant(scene_path: str, params: dict[str, Any], out_dir: str, device: s
     except Exception as exc:  # a variant's failure is data, not the sweep's end
         record.update(status="failed", error=f"{type(exc).__name__}: {exc}", traceback=traceback.format_exc(limit=6))
     record["wall_s"] = round(time.perf_counter() - t0, 4)
+    world = None  # (as after the warm-up: the next in-process variant starts from nothing of this one's)
+    gc.collect()
     record["host_rss_high_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
     try:
         _write_json(out / f"{name}.json", record)
@@ -209,6 +212,10 @@ def _warm(scene_path: str, params: dict[str, Any], device: str | None, frames: i
             wp.force_load(device=world.device)
     except Exception:  # the variant's own run reports it
         pass
+    # collected now, not when the cycle collector next runs: the next variant in this process
+    # must not find this one's device copies (shared by content: ``stepper.step_operators``)
+    world = None
+    gc.collect()
     return time.perf_counter() - t
 
 

@@ -27,14 +27,21 @@ class Mode:
     Attributes:
         default: the default variant's knobs, where they differ from ``build``'s own defaults.
         grid: knob -> values; each knob is varied alone from the default (not a product).
-        reference: the high-accuracy reference's knobs (over the default's).
+        reference: the reference's knobs (over the default's): the finest setting the study
+            affords, which is only as accurate as ``check`` shows.
         frames: frames every variant simulates.
+        check: the reference check: knobs over the reference's that refine it one notch in its
+            dominant discretization (BEM: dt halved). The study runs it too and reports its
+            distance from the reference (the same error) as the reference's uncertainty: errors
+            below twice that are not resolved by the reference. Empty where no finer setting
+            exists or none is needed (``StudySpec.check_note`` says which).
     """
 
     default: dict[str, Any]
     grid: dict[str, list[Any]]
     reference: dict[str, Any]
     frames: int
+    check: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -57,6 +64,9 @@ class StudySpec:
         quick, full: the two sizes.
         notes: what the report should say besides the numbers (a caveat measured elsewhere).
         advice_targets: the errors the report names the cheapest setting under.
+        check_note: what the reference check is, or why a study has none (the report prints it).
+        exact_reference: the study's ``metrics`` measures the error against the truth itself (the
+            PDE reconstruction against the frames it rebuilds): the reference's uncertainty is 0.
     """
 
     name: str
@@ -70,6 +80,8 @@ class StudySpec:
     full: Mode
     notes: str = ""
     advice_targets: tuple[float, ...] = field(default=(0.001, 0.01, 0.1))
+    check_note: str = ""
+    exact_reference: bool = False
 
 
 def match_points(vertices: np.ndarray, points: np.ndarray, what: str, tol: float = 1e-9) -> np.ndarray:
@@ -118,14 +130,20 @@ def bytes_held(root: Any, max_depth: int = 6) -> tuple[int, int]:
                 ptr = int(obj.__array_interface__["data"][0])
                 spans.setdefault("host", []).append((ptr, ptr + int(obj.nbytes)))
             continue
+        if type(obj).__module__.startswith("scipy.sparse"):
+            # a sparse matrix's arrays count at any depth: the compressed BEM operators sit one level
+            # below max_depth (body, stepper, history, tuple, CompressedMatrix, C), and skipping them
+            # made compression look cheaper than the dense operators it costs more than
+            stack.extend((c, depth) for c in vars(obj).values() if isinstance(c, np.ndarray))
+            continue
         if depth >= max_depth or isinstance(obj, World):
             continue
         if isinstance(obj, dict):
             children: list[Any] = list(obj.values())
         elif isinstance(obj, (list, tuple)):
             children = list(obj)
-        elif (dataclasses.is_dataclass(obj) or type(obj).__module__.startswith(("wsim", "scipy.sparse"))):
-            children = list(getattr(obj, "__dict__", {}).values())  # a sparse matrix keeps its arrays there
+        elif dataclasses.is_dataclass(obj) or type(obj).__module__.startswith("wsim"):
+            children = list(getattr(obj, "__dict__", {}).values())
             children += [getattr(obj, s) for s in getattr(type(obj), "__slots__", ()) if hasattr(obj, s)]
         else:
             continue

@@ -13,7 +13,8 @@ keyframe, linear: the recorded frames themselves) has error 0 by construction; i
 variant, a check of the measurement.
 
 Knobs (``PbdReconstruction``'s): ``stride`` (frames per keyframe), ``basis`` ("pde", "bezier",
-"bspline", "linear") and ``points_per_curve`` (the length of the automatic curves, in vertices).
+"linear"; "bspline" is left out: it fits the same cubic curves as "bezier", so its results are
+bezier's) and ``points_per_curve`` (the length of the automatic curves, in vertices).
 Costs: playback milliseconds per frame (the reconstruction kernel) and the stored data over the
 raw frames (``data_ratio``); the fit's seconds (``fit_s``) are in the records.
 """
@@ -44,13 +45,17 @@ SPEC = StudySpec(
     scale=None,
     costs={"ms_per_frame": "playback ms per frame", "data_ratio": "stored data / raw frames"},
     knobs={"stride": "PbdReconstruction(stride=...): frames per keyframe",
-           "basis": "PbdReconstruction(basis=...): 'pde' (closed-form PDE curves), 'bezier', 'bspline', 'linear'",
+           "basis": "PbdReconstruction(basis=...): 'pde' (closed-form PDE curves), 'bezier', 'linear' ('bspline' "
+                    "fits the same cubic curves as 'bezier': not studied apart)",
            "points_per_curve": "PbdReconstruction(points_per_curve=...): vertices per automatic curve"},
     quick=Mode(default={}, grid={"stride": [5, 20], "basis": ["bezier", "linear"], "points_per_curve": [6, 24]},
                reference={"stride": 1, "basis": "linear"}, frames=FRAMES),
     full=Mode(default={"rings": 96, "sectors": 32, "frames": 100},
-              grid={"stride": [2, 5, 20], "basis": ["bezier", "bspline", "linear"], "points_per_curve": [6, 24]},
+              grid={"stride": [2, 5, 20], "basis": ["bezier", "linear"], "points_per_curve": [6, 24]},
               reference={"stride": 1, "basis": "linear"}, frames=100),
+    check_note="the error is measured against the simulated frames themselves, not against the reference, which "
+               "runs as a check of the measurement (its error is 0 up to float32 output)",
+    exact_reference=True,
 )
 
 
