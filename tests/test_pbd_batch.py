@@ -156,3 +156,28 @@ def test_a_diverged_member_is_named():
     bodies[1].state.v.assign(v)
     with pytest.raises(wsim.SimulationDiverged, match="'b'"):
         world.step()
+
+
+def test_block_moments_by_segment_equal_the_serial_sums():
+    """The GPU path of the batch's momentum sums (``kernels.pbd.moments``: block reductions, one
+    body per block thanks to the padding) run on the CPU with its block size: equal to the serial
+    per-body sums the CPU path uses (which the tests above exercise)."""
+    import warp as wp
+
+    from wsim.kernels import pbd as kp
+
+    world = wsim.World(fps=30.0, device="cpu", body_contact=False)
+    bodies = [world.add(wsim.PbdBody(mesh, name=name, **kw)) for name, mesh, kw in SPEC]
+    world.step()
+    batch = bodies[0]._batch
+    k = len(bodies)
+    block = wp.zeros(k * batch._seg_stride, dtype=wp.float64, device="cpu")
+    serial = wp.zeros_like(block)
+    args = [batch.x, batch.v, batch.dxc, batch.inv_mass]
+    wp.launch(kp.moments, dim=batch.model.n_particles, block_dim=kp.MOMENT_BLOCK, device="cpu",
+              inputs=[*args, block, 0, batch._seg, batch._seg_first, batch._seg_stride])
+    wp.launch(kp.moments_serial, dim=k, device="cpu",
+              inputs=[*args, serial, 0, batch._seg_first, batch._seg_count, batch._seg_stride])
+    b, s = block.numpy().reshape(k, -1)[:, :22], serial.numpy().reshape(k, -1)[:, :22]
+    assert np.all(s[:, 0] > 0.0)  # every body's mass is summed
+    np.testing.assert_allclose(b, s, rtol=1e-12, atol=1e-12 * np.abs(s).max())

@@ -43,7 +43,7 @@ import numpy as np
 
 from wsim.errors import InvalidParameter
 from wsim.studies.common import Mode, StudySpec
-from wsim.sweep import ENGINES, _done, _warm, sweep, variant_name
+from wsim.sweep import ENGINES, finished_record, sweep, variant_name, warm_kernels
 
 STUDIES = ("bem", "eol", "pbd", "pde", "coupling")
 RESOLVE = 2.0  # an error below RESOLVE x the reference's uncertainty is not resolved by the reference
@@ -267,12 +267,12 @@ def run_study(name: str, out_dir: str | os.PathLike[str], *, quick: bool = False
     t = time.perf_counter()
     runs = Path(out_dir) / name
     in_process = engine == "local" or (engine == "auto" and not _ray_installed())
-    pending = [p for n, p in unique if _done(runs, n, p, mode.frames, device, False) is None]
+    pending = [p for n, p in unique if finished_record(runs, n, p, mode.frames, device, False) is None]
     if in_process and pending:
         # the sweep's own in-process warm-up runs the first variant only: a Warp module that only
         # another variant reaches (the compression kernels) would compile inside that variant's
         # timed build; force-loading every module the build imported keeps compiling out of all
-        secs = _warm(module.__file__, pending[0], device, mode.frames, load_all=True)
+        secs = warm_kernels(module.__file__, pending[0], device, mode.frames, load_all=True)
         say(f"wsim study: {name}: a warm-up run of {variant_name(spec.name, pending[0])} and every Warp module its "
             f"build imported ({secs:.1f} s, not recorded)")
     records = sweep(module.__file__, [p for _, p in unique], runs, device=device, frames=mode.frames,

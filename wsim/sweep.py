@@ -140,7 +140,7 @@ def run_variant(scene_path: str, params: dict[str, Any], out_dir: str, device: s
     name = variant_name(scene, params)
     out = Path(out_dir)
     n = frames if frames is not None else default_frames
-    # what a re-run compares before it skips this variant (``_done``)
+    # what a re-run compares before it skips this variant (``finished_record``)
     record: dict[str, Any] = {"variant": name, "scene": scene, "params": params, "status": "failed",
                               "frames": n, "device_requested": device}
     t0 = time.perf_counter()
@@ -177,7 +177,7 @@ def run_variant(scene_path: str, params: dict[str, Any], out_dir: str, device: s
     return record
 
 
-def _done(out: Path, name: str, params: dict[str, Any], frames: int, device: str | None,
+def finished_record(out: Path, name: str, params: dict[str, Any], frames: int, device: str | None,
           usd: bool = True) -> dict | None:
     """The variant's record if a finished run of the same parameters, frames, device and USD
     output (written or not) is on disk."""
@@ -190,7 +190,7 @@ def _done(out: Path, name: str, params: dict[str, Any], frames: int, device: str
     return record if record.get("status") == "ok" and same else None
 
 
-def _warm(scene_path: str, params: dict[str, Any], device: str | None, frames: int = 1, load_all: bool = True) -> float:
+def warm_kernels(scene_path: str, params: dict[str, Any], device: str | None, frames: int = 1, load_all: bool = True) -> float:
     """Compile the scene's kernels once (Warp's on-disk cache) by building the first variant,
     stepping it ``frames`` frames and (``load_all``) then compiling every Warp module its build
     imported; returns the seconds it took."""
@@ -286,7 +286,7 @@ def sweep(scene_path: str, params: dict[str, Sequence[Any]] | Sequence[dict[str,
     if len(set(names)) != len(names):
         raise InvalidParameter(f"scene '{scene}': two variants would share a file name; give distinct values")
     n_frames = frames if frames is not None else default_frames
-    done = {n: r for n, r in ((n, _done(out, n, p, n_frames, device, usd)) for n, p in zip(names, allv)) if r is not None}
+    done = {n: r for n, r in ((n, finished_record(out, n, p, n_frames, device, usd)) for n, p in zip(names, allv)) if r is not None}
     todo = [p for p, n in zip(allv, names) if n not in done]
     if done:
         say(f"wsim sweep: {len(done)} of {len(allv)} variants already done in {out}, skipped")
@@ -304,11 +304,11 @@ def sweep(scene_path: str, params: dict[str, Sequence[Any]] | Sequence[dict[str,
     fresh: dict[str, dict] = {}
     if todo:
         if warm and use_ray:  # in-process, the first variant compiles them for the rest
-            secs = _warm(scene_abs, todo[0], device, n_frames if warm_full else 1)
+            secs = warm_kernels(scene_abs, todo[0], device, n_frames if warm_full else 1)
             say(f"wsim sweep: compiling the scene's kernels once ({secs:.1f} s)")
         elif warm and warm_full:  # the whole run: kernels first reached late (contact) are compiled too
             say(f"wsim sweep: a warm-up run of {variant_name(scene, todo[0])} "
-                f"({_warm(scene_abs, todo[0], device, n_frames, load_all=False):.1f} s, not recorded)")
+                f"({warm_kernels(scene_abs, todo[0], device, n_frames, load_all=False):.1f} s, not recorded)")
         t = time.perf_counter()
         if use_ray:
             records = _ray_run(todo, scene_abs, str(out.resolve()), device, frames, address, gpus_per_task, usd)
