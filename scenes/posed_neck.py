@@ -20,25 +20,9 @@ FRAMES = 100
 DURATION = FRAMES / 30.0
 
 
-def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
-    a = axis / np.linalg.norm(axis)
-    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
-
-
 def head_motion(pivot: np.ndarray, long_axis: np.ndarray, bend_axis: np.ndarray):
     """t -> 4x4: raise the head about ``bend_axis`` through ``pivot`` and twist it about the neck."""
-
-    def motion(t: float) -> np.ndarray:
-        s = min(max(t / DURATION, 0.0), 1.0)
-        ease = 0.5 - 0.5 * np.cos(np.pi * s)  # smooth start and stop
-        R = _rotation(bend_axis, np.radians(70.0) * ease) @ _rotation(long_axis, np.radians(90.0) * ease)
-        m = np.eye(4)
-        m[:3, :3] = R
-        m[:3, 3] = pivot - R @ pivot
-        return m
-
-    return motion
+    return wmesh.neck_pose(pivot, long_axis, bend_axis, DURATION)
 
 
 def make_body(mesh: str | None = None, name: str | None = None) -> wsim.PbdBody:

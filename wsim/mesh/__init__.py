@@ -27,7 +27,7 @@ Conventions used throughout (and expected by every caller):
 """
 
 from wsim.mesh.inside import SurfaceQuery, inside_surface, inside_test, winding_number
-from wsim.mesh.shapes import beam, bumpy_cube, bumpy_sphere, fish, neck_body, torus
+from wsim.mesh.shapes import beam, bumpy_cube, bumpy_sphere, fish, neck_body, neck_pose, torus
 from wsim.mesh.stage import load_usd
 from wsim.mesh.surface import (
     display_name,
@@ -68,6 +68,7 @@ __all__ = [
     "bumpy_sphere",
     "fish",
     "neck_body",
+    "neck_pose",
     "beam",
     "torus",
     "bumpy_cube",

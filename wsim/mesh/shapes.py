@@ -245,6 +245,30 @@ def neck_body(
     return _finish(v, np.concatenate(faces), "neck_body")
 
 
+def neck_pose(pivot: Any, long_axis: Any, bend_axis: Any, duration: float, bend_deg: float = 70.0,
+              twist_deg: float = 90.0) -> Any:
+    """t -> 4 x 4 rigid transform that raises a ``neck_body``'s head about ``bend_axis`` through
+    ``pivot`` by ``bend_deg`` and twists it about ``long_axis`` by ``twist_deg`` over ``duration``
+    seconds, eased in and out: the posed-model workload's head handle (``scenes/posed_neck.py``,
+    ``wsim study``'s PDE study, ``tools/bench_pbd.py``)."""
+    from wsim.rigid import rodrigues
+
+    pivot = np.asarray(pivot, dtype=np.float64)
+    long_axis = np.asarray(long_axis, dtype=np.float64) / np.linalg.norm(long_axis)
+    bend_axis = np.asarray(bend_axis, dtype=np.float64) / np.linalg.norm(bend_axis)
+
+    def motion(t: float) -> np.ndarray:
+        s = min(max(t / duration, 0.0), 1.0)
+        ease = 0.5 - 0.5 * np.cos(np.pi * s)  # smooth start and stop
+        R = rodrigues(np.radians(bend_deg) * ease * bend_axis) @ rodrigues(np.radians(twist_deg) * ease * long_axis)
+        m = np.eye(4)
+        m[:3, :3] = R
+        m[:3, 3] = pivot - R @ pivot
+        return m
+
+    return motion
+
+
 def _box_surface(lo: np.ndarray, hi: np.ndarray, divisions: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
     """Surface of the box [lo, hi] on a (nx, ny, nz) lattice: shared vertices, outward triangles."""
     dims = np.asarray(divisions, dtype=np.int64)

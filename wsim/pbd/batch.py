@@ -27,7 +27,6 @@ import numpy as np
 import warp as wp
 
 from wsim.kernels import pbd as kp
-from wsim.kernels import pbd_contact as kc
 from wsim.pbd.model import FAMILY_KINDS
 
 if TYPE_CHECKING:
@@ -58,6 +57,7 @@ class PbdBatch:
     _moment_blocks = _Body._moment_blocks
     _prepare_layout = _Body._prepare_layout
     _upload_frame_inputs = _Body._upload_frame_inputs
+    _frame = _Body.advance  # layout, inputs and the recorded CUDA graph, as for one body
     del _Body
 
     def __init__(self, bodies: Sequence[PbdBody]) -> None:
@@ -174,24 +174,11 @@ class PbdBatch:
             for b in self.bodies:
                 b.advance(t0, t1)
             return
-        frame_dt = round(t1 - t0, 12)  # as PbdBody.advance: one layout and graph, not one a frame
-        substeps = self.bodies[0].substeps_for(frame_dt)
-        h = frame_dt / substeps
-        if self._layout != (substeps, h):
-            self._prepare_layout(substeps, h)
-        device = self._device
-        with wp.ScopedDevice(device):
-            self._upload_frame_inputs(t0, substeps, h)
-            if device.is_cuda and self.use_graph:
-                if self._graph is None:
-                    wp.load_module(kp, device=device)
-                    wp.load_module(kc, device=device)
-                    with wp.ScopedCapture(device=device) as capture:
-                        self._launch_frame(substeps, h)
-                    self._graph = capture.graph
-                wp.capture_launch(self._graph)
-            else:
-                self._launch_frame(substeps, h)
+        self._frame(t0, t1)
+
+    def substeps_for(self, frame_dt: float) -> int:
+        """The members' substeps for ``frame_dt`` (equal: they share ``batch_key``)."""
+        return self.bodies[0].substeps_for(frame_dt)
 
 
 def batches(bodies: Sequence[PbdBody]) -> list[PbdBatch]:

@@ -59,12 +59,6 @@ SPEC = StudySpec(
 )
 
 
-def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
-    a = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
-    K = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
-
-
 def posed_creature(rings: int, sectors: int) -> wsim.PbdBody:
     """``scenes/posed_neck.py``'s body: torso (first 40 % of the length) pinned, head (last 15 %)
     raised and twisted about the neck's base by a handle."""
@@ -76,14 +70,7 @@ def posed_creature(rings: int, sectors: int) -> wsim.PbdBody:
     long_axis, bend_axis = np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])
     seconds = POSE_FRAMES / 30.0
 
-    def motion(t: float) -> np.ndarray:
-        s = min(max(t / seconds, 0.0), 1.0)
-        ease = 0.5 - 0.5 * np.cos(np.pi * s)  # smooth start and stop
-        R = _rotation(bend_axis, np.radians(70.0) * ease) @ _rotation(long_axis, np.radians(90.0) * ease)
-        m = np.eye(4)
-        m[:3, :3] = R
-        m[:3, 3] = pivot - R @ pivot
-        return m
+    motion = wmesh.neck_pose(pivot, long_axis, bend_axis, seconds)
 
     return wsim.PbdBody(shape, wsim.ElasticMaterial(E=3.0e5, nu=0.4, rho=1000.0), name="creature", tets="auto",
                         pinned=torso, handles=[wsim.Handle(head, motion, name="head")], substeps=10, iterations=2,
