@@ -43,7 +43,7 @@ import numpy as np
 
 from wsim.errors import InvalidParameter
 from wsim.studies.common import Mode, StudySpec
-from wsim.sweep import ENGINES, finished_record, sweep, variant_name, warm_kernels
+from wsim.sweep import ENGINES, sweep, variant_name
 
 STUDIES = ("bem", "eol", "pbd", "pde", "coupling")
 RESOLVE = 2.0  # an error below RESOLVE x the reference's uncertainty is not resolved by the reference
@@ -266,18 +266,8 @@ def run_study(name: str, out_dir: str | os.PathLike[str], *, quick: bool = False
         f"the reference{' and its check' if mode.check else ''}), {mode.frames} frames each")
     t = time.perf_counter()
     runs = Path(out_dir) / name
-    in_process = engine == "local" or (engine == "auto" and not _ray_installed())
-    pending = [p for n, p in unique if finished_record(runs, n, p, mode.frames, device, False) is None]
-    if in_process and pending:
-        # the sweep's own in-process warm-up runs the first variant only: a Warp module that only
-        # another variant reaches (the compression kernels) would compile inside that variant's
-        # timed build; force-loading every module the build imported keeps compiling out of all
-        secs = warm_kernels(module.__file__, pending[0], device, mode.frames, load_all=True)
-        say(f"wsim study: {name}: a warm-up run of {variant_name(spec.name, pending[0])} and every Warp module its "
-            f"build imported ({secs:.1f} s, not recorded)")
     records = sweep(module.__file__, [p for _, p in unique], runs, device=device, frames=mode.frames,
-                    engine=engine, address=address, gpus_per_task=gpus_per_task, usd=False, warm=not in_process,
-                    warm_full=True, log=lambda s: say(s.replace("wsim sweep:", f"wsim study: {name}:", 1)))
+                    engine=engine, address=address, gpus_per_task=gpus_per_task, usd=False, warm_full=True, log=lambda s: say(s.replace("wsim sweep:", f"wsim study: {name}:", 1)))
     seconds = time.perf_counter() - t
     result = analyse(spec, variants, {r["variant"]: r for r in records})
     # the settings in full (build's defaults too) of the knobs the study varies or the reference sets
@@ -290,13 +280,6 @@ def run_study(name: str, out_dir: str | os.PathLike[str], *, quick: bool = False
     return {"name": spec.name, "title": spec.title, "scenario": spec.scenario, "error": spec.error, "notes": spec.notes,
             "knobs": spec.knobs, "costs": spec.costs, "frames": mode.frames, "default": mode.default,
             "reference": mode.reference, "check": mode.check, "grid": mode.grid, "seconds": round(seconds, 2), **result}
-
-
-def _ray_installed() -> bool:
-    """Whether the sweep's engine "auto" would use Ray (it runs in-process without it)."""
-    import importlib.util
-
-    return importlib.util.find_spec("ray") is not None
 
 
 def run_studies(names: Sequence[str] | None, out_dir: str | os.PathLike[str], *, quick: bool = False,

@@ -24,8 +24,9 @@ the end.
 For other engines on top of this one (``wsim.study``): ``params`` may also be an explicit list of
 variants (one dict each) instead of a product, ``usd=False`` simulates without writing USD (the
 timing then holds no output), and ``warm_full=True`` makes the warm-up run the first variant's
-every frame, unrecorded, before Ray's tasks and before the in-process runner too, so that no
-recorded variant pays for compiling kernels, those first reached late (contact) included.
+every frame, unrecorded, before Ray's tasks and before the in-process runner too, then compile
+every module its build imported, so that no recorded variant pays for compiling kernels (those
+only other variants reach, such as the compression kernels, included).
 """
 
 from __future__ import annotations
@@ -140,7 +141,7 @@ def run_variant(scene_path: str, params: dict[str, Any], out_dir: str, device: s
     name = variant_name(scene, params)
     out = Path(out_dir)
     n = frames if frames is not None else default_frames
-    # what a re-run compares before it skips this variant (``finished_record``)
+    # what a re-run compares before it skips this variant (``_finished_record``)
     record: dict[str, Any] = {"variant": name, "scene": scene, "params": params, "status": "failed",
                               "frames": n, "device_requested": device}
     t0 = time.perf_counter()
@@ -177,7 +178,7 @@ def run_variant(scene_path: str, params: dict[str, Any], out_dir: str, device: s
     return record
 
 
-def finished_record(out: Path, name: str, params: dict[str, Any], frames: int, device: str | None,
+def _finished_record(out: Path, name: str, params: dict[str, Any], frames: int, device: str | None,
           usd: bool = True) -> dict | None:
     """The variant's record if a finished run of the same parameters, frames, device and USD
     output (written or not) is on disk."""
@@ -286,7 +287,7 @@ def sweep(scene_path: str, params: dict[str, Sequence[Any]] | Sequence[dict[str,
     if len(set(names)) != len(names):
         raise InvalidParameter(f"scene '{scene}': two variants would share a file name; give distinct values")
     n_frames = frames if frames is not None else default_frames
-    done = {n: r for n, r in ((n, finished_record(out, n, p, n_frames, device, usd)) for n, p in zip(names, allv)) if r is not None}
+    done = {n: r for n, r in ((n, _finished_record(out, n, p, n_frames, device, usd)) for n, p in zip(names, allv)) if r is not None}
     todo = [p for p, n in zip(allv, names) if n not in done]
     if done:
         say(f"wsim sweep: {len(done)} of {len(allv)} variants already done in {out}, skipped")
@@ -306,9 +307,9 @@ def sweep(scene_path: str, params: dict[str, Sequence[Any]] | Sequence[dict[str,
         if warm and use_ray:  # in-process, the first variant compiles them for the rest
             secs = warm_kernels(scene_abs, todo[0], device, n_frames if warm_full else 1)
             say(f"wsim sweep: compiling the scene's kernels once ({secs:.1f} s)")
-        elif warm and warm_full:  # the whole run: kernels first reached late (contact) are compiled too
-            say(f"wsim sweep: a warm-up run of {variant_name(scene, todo[0])} "
-                f"({warm_kernels(scene_abs, todo[0], device, n_frames, load_all=False):.1f} s, not recorded)")
+        elif warm and warm_full:  # the whole run, then every module its build imported (``warm_kernels``)
+            say(f"wsim sweep: a warm-up run of {variant_name(scene, todo[0])} and every Warp module its build "
+                f"imported ({warm_kernels(scene_abs, todo[0], device, n_frames):.1f} s, not recorded)")
         t = time.perf_counter()
         if use_ray:
             records = _ray_run(todo, scene_abs, str(out.resolve()), device, frames, address, gpus_per_task, usd)

@@ -121,8 +121,8 @@ class World:
                                        f"into whole intervals")
             self.coupling_steps = k
         self._groups: list[tuple[list[Body], list]] = []  # bodies stepped together, their joints as points
-        self._group_sets: list[list] = []  # per group, its BEM instance sets (``wsim.bem.instances``)
-        self._sets: list = []  # the instance sets of bodies in no group
+        self._group_sets: list[list] = []  # per group, its sets of bodies that step together (``_step_sets``)
+        self._sets: list = []  # the sets of the bodies in no group
         self.timings: dict[str, float] = {}  # seconds per stage: each method's stepping, "coupling"
         self.profile = False  # synchronize the device after each stage (``timings`` then splits GPU time)
 
@@ -221,17 +221,12 @@ class World:
                         by_dt.setdefault(round(float(b.dt), 15), []).append(b)
                 links = [(g[0], b) for g in by_dt.values() for b in g[1:]]
             self._groups = _joint_groups(self.joints, links)
-            # bodies on one operator set stream its matrices once a step for all (BEM instances): a
-            # set within each group, and one of the bodies no group steps
+            # bodies that step together (``_step_sets``: BEM bodies on one operator set, PBD bodies
+            # in one launch set): sets within each group, and sets of the bodies no group steps
+            # (PBD bodies in lockstep are stepped by ``advance_together``, which uses their batch)
             grouped = {id(b) for bodies, _ in self._groups for b in bodies}
-            self._group_sets = [_instance_sets(bodies) for bodies, _ in self._groups]
-            self._sets = _instance_sets([b for b in self.bodies if id(b) not in grouped])
-            # PBD bodies in one launch set (``PbdBody.batches``): those stepping alone go through
-            # ``_sets`` like instance sets; lockstep ones are stepped by ``advance_together``
-            pbd_all = [b for b in self.bodies if hasattr(b, "batches")]
-            pbd_batches = type(pbd_all[0]).batches(pbd_all) if len(pbd_all) > 1 else []
-            if not self._lockstep:
-                self._sets += pbd_batches
+            self._group_sets = [_step_sets(bodies) for bodies, _ in self._groups]
+            self._sets = _step_sets([b for b in self.bodies if id(b) not in grouped])
             self._index = {id(b): i for i, b in enumerate(self.bodies)}  # a body's key in the exchange
             self._bound = True
 
@@ -295,7 +290,7 @@ class World:
                 if id(body) not in in_set:
                     self._timed(_stage(body), body.advance, t0, t1)
                 elif body is in_set[id(body)].bodies[0]:  # the set steps its bodies together
-                    self._timed(_stage(body), _advance_set, in_set[id(body)], t0, t1)
+                    self._timed(_stage(body), in_set[id(body)].advance, t0, t1)
         for (bodies, joints), sets in zip(self._groups, self._group_sets):
             self._timed("bem", _advance_group, bodies, joints, t1, self.device, self.body_contact, sets)
         end: dict[int, np.ndarray] = {}  # each target's points at the interval's end (read once per interval)
@@ -452,18 +447,14 @@ def _advance_group(bodies: list[Body], joints: list, t1: float, device, contact:
         wc.solve_group(bodies, joints, device, tol, iterations, bodies[0].steps + 1, contact_margin=margin)
 
 
-def _advance_set(members: Any, t0: float, t1: float) -> None:
-    """Step a set of bodies that advance together: a BEM instance set (to t1) or a PBD batch."""
-    if hasattr(members, "steps_together"):
-        members.advance(t0, t1)
-    else:
-        members.advance(t1)
-
-
-def _instance_sets(bodies: Sequence[Body]) -> list:
-    """The instance sets of the bodies that have them (BEM: ``BemBody.instance_sets``)."""
-    with_sets = [b for b in bodies if hasattr(b, "instance_sets")]
-    return type(with_sets[0]).instance_sets(with_sets) if len(with_sets) > 1 else []
+def _step_sets(bodies: Sequence[Body]) -> list:
+    """Sets of bodies that step together (each with ``bodies`` and ``advance(t0, t1)``), per body
+    type that forms them (its ``step_sets``: ``BemBody``'s instance sets, ``PbdBody``'s batches)."""
+    by_type: dict[type, list[Body]] = {}
+    for b in bodies:
+        if hasattr(b, "step_sets"):
+            by_type.setdefault(type(b), []).append(b)
+    return [s for cls, members in by_type.items() if len(members) > 1 for s in cls.step_sets(members)]
 
 
 def _couple_surfaces(pusher: Body, targets: Sequence[Body], index: dict[int, int], start: dict[int, np.ndarray],

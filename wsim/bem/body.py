@@ -930,7 +930,7 @@ class BemBody(VertexImpulses, Body):
         self._U_k, self._P_k, self._p_k, self._h_k = view(st.U), view(st.P), view(self._p), view(self._h)
 
     @staticmethod
-    def instance_sets(bodies: Sequence[BemBody]) -> list:
+    def step_sets(bodies: Sequence[BemBody]) -> list:
         """Bodies of ``bodies`` on one operator set, as sets that step their passes together
         (``wsim.bem.instances``); bodies of no set are not listed."""
         from wsim.bem.instances import instance_sets

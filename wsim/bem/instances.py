@@ -95,8 +95,9 @@ class Instances:
             b.timings["history"] = b.timings.get("history", 0.0) + share * (t1 - t0)
             b.timings["solve"] = b.timings.get("solve", 0.0) + share * (t3 - t2)
 
-    def advance(self, t1: float) -> None:
-        """Step every member (not in a contact or joint group) to the nearest multiple of dt to t1:
+    def advance(self, t0: float, t1: float) -> None:
+        """Step every member (not in a contact or joint group) to the nearest multiple of dt to t1
+        (``t0``, the interval's start, is the members' own time: the World's signature for sets):
         one shared prediction a step; free bodies then finish together (``finish_free``), held
         or touching ones through their own constraint solve."""
         dt = self.bodies[0].dt

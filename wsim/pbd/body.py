@@ -593,7 +593,7 @@ class PbdBody(Body):
         advance_together(bodies, t0, t1, graphs)
 
     @staticmethod
-    def batches(bodies: Sequence[PbdBody]) -> list:
+    def step_sets(bodies: Sequence[PbdBody]) -> list:
         """The bodies of ``bodies`` that can step in one launch set, as batches
         (``wsim.pbd.batch``); bodies of no batch are not listed."""
         from wsim.pbd.batch import batches
