@@ -33,7 +33,6 @@ import os
 import platform
 import sys
 import tempfile
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
@@ -264,11 +263,11 @@ def run_study(name: str, out_dir: str | os.PathLike[str], *, quick: bool = False
     unique = list({variant_name(spec.name, v.params): v.params for v in variants}.items())
     say(f"wsim study: {name}: {len(unique)} runs ({sum(len(x) for x in mode.grid.values())} knob settings, the default, "
         f"the reference{' and its check' if mode.check else ''}), {mode.frames} frames each")
-    t = time.perf_counter()
     runs = Path(out_dir) / name
     records = sweep(module.__file__, [p for _, p in unique], runs, device=device, frames=mode.frames,
                     engine=engine, address=address, gpus_per_task=gpus_per_task, usd=False, warm_full=True, log=lambda s: say(s.replace("wsim sweep:", f"wsim study: {name}:", 1)))
-    seconds = time.perf_counter() - t
+    # the variants' own run times as recorded: a re-run that skips finished variants reports the same
+    seconds = sum(float(r.get("wall_s") or 0.0) for r in records)
     result = analyse(spec, variants, {r["variant"]: r for r in records})
     # the settings in full (build's defaults too) of the knobs the study varies or the reference sets
     shown = list(dict.fromkeys([*mode.grid, *mode.reference, *mode.default]))
@@ -314,7 +313,6 @@ def run_studies(names: Sequence[str] | None, out_dir: str | os.PathLike[str], *,
         names = [n for n in names if per_study[n]]
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    t = time.perf_counter()
     studies = {}
     with _one_ray(engine, address):  # one Ray for every study's sweep, not one each
         for n in names:
@@ -322,7 +320,8 @@ def run_studies(names: Sequence[str] | None, out_dir: str | os.PathLike[str], *,
                                    gpus_per_task=gpus_per_task, knobs=per_study[n], mode=(modes or {}).get(n), log=say)
     report = {"created": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
               "command": command, "quick": quick, "device": _devices(studies), "host": _host(),
-              "versions": _versions(), "engine": engine, "seconds": round(time.perf_counter() - t, 1),
+              "versions": _versions(), "engine": engine,
+              "seconds": round(sum(st["seconds"] for st in studies.values()), 1),
               "studies": studies}
     plots = write_plots(report, out)
     report["plots"] = plots
@@ -472,7 +471,7 @@ def markdown(report: dict[str, Any]) -> str:
     kind = "Quick report (CPU-sized grids)" if report["quick"] else "Full report"
     lines += [f"{kind}, {report['created']}, on {', '.join(report['device']) or 'no device'} "
               f"({report['host']}; wsim {report['versions']['wsim']}, Warp {report['versions']['warp']}); "
-              f"{report['seconds']:.0f} s in all, " + _engine_text(report["engine"]) + "."
+              f"{report['seconds']:.0f} s of runs in all, " + _engine_text(report["engine"]) + "."
               + (f" Command: `{report['command']}`." if report.get("command") else ""), ""]
     lines += ["**How to read it.** Each study simulates one scene with several settings of its method's knobs: "
               "the default, a reference (the finest setting the study affords), and each knob varied alone from the "
@@ -496,7 +495,7 @@ def markdown(report: dict[str, Any]) -> str:
         lines += [f"## {s['title']}", "", s["scenario"], ""]
         scale = f" ({s['scale_note']})" if s.get("scale_note") else ""
         lines += [f"Error: {s['error']}{scale}. Default: {_params(s['default_settings'])}; reference: "
-                  f"{_params(s['reference_settings'])}; {s['frames']} frames; {s['seconds']:.0f} s.", ""]
+                  f"{_params(s['reference_settings'])}; {s['frames']} frames; {s['seconds']:.0f} s of runs.", ""]
         lines += [_check_text(s), ""]
         cost_keys = list(s["costs"])
         vs = s.get("scale") is not None  # a signature to compare with the default's
