@@ -760,3 +760,90 @@ def add_node_changes(nodes: wp.array(dtype=wp.int32), d0: wp.array(dtype=wp.vec3
     s = nodes[i]
     w[s] = w[s] + d0[i]
     a[s] = a[s] + d1[i]
+
+
+#: floats of a row entry of ``pair_entries``: c . (v_own - v_other) from w and from a, vol / tau,
+#: vol, sigma c (3), sigma |c| (v_own - v_other) from w (3) and from a (3), |c|
+PAIR_ROW_VALUES = 14
+#: floats of a node entry: w c' (3; c' = sign Q^T c, velocity axes), w sign sigma |c|, w
+PAIR_NODE_VALUES = 5
+
+
+@wp.kernel
+def pair_entries(
+    rec_i: wp.array2d(dtype=wp.int32),
+    rec_f: wp.array2d(dtype=wp.float64),
+    own: int,
+    pair_a: wp.array(dtype=wp.int32),
+    pair_b: wp.array(dtype=wp.int32),
+    axes: wp.array(dtype=wp.mat33d),
+    node_shape: wp.array(dtype=wp.vec3i),
+    inv_tau: wp.array(dtype=wp.float64),
+    row_stride: wp.int64,
+    rows: wp.int64,
+    nodes: wp.int64,
+    offset: int,
+    node_keys: wp.array(dtype=wp.int64),
+    node_values: wp.array2d(dtype=wp.float64),
+    node_mass: wp.array(dtype=wp.float64),
+    row_keys: wp.array(dtype=wp.int64),
+    row_values: wp.array2d(dtype=wp.float64),
+):
+    """One ``pair_samples`` record of body ``own`` (group index) as the entries the rows between
+    bodies are summed from (``wsim.eol.pairs``): one row entry, keyed by the row (pair p, A's
+    collision cell k: p ``row_stride`` + k), and 16 node entries, one per corner of each body's
+    cell (X the body, n the corner's node: key (X ``rows`` + row) ``nodes`` + n).
+
+    With c the sample's pushed area (world), sigma = +1 if the own body is the pair's A else -1,
+    and sign = +1 on the own body's side, -1 on the other's: a node entry holds w c' with
+    c' = sign Q_X^T c (the row's coefficient on that node's velocity, X's velocity axes; w the
+    corner's weight of X's cell, ``cell_weights``), w sign sigma |c| (the node's part of the
+    row's slip v_A - v_B, before the division by the row's total |c|) and w (zero: no material,
+    the entry is dropped). Its mass is the node's. Record r of this buffer writes row entry
+    ``offset`` + r and node entries 16 (``offset`` + r) + 8 side + corner."""
+    r = wp.tid()
+    pair = rec_i[r, 0]
+    own_is_a = rec_i[r, 1]
+    other = pair_a[pair]
+    sigma = wp.float64(-1.0)
+    if own_is_a != 0:
+        other = pair_b[pair]
+        sigma = wp.float64(1.0)
+    row = wp.int64(pair) * row_stride + wp.int64(rec_i[r, 4])
+    c = wp.vec3d(rec_f[r, 32], rec_f[r, 33], rec_f[r, 34])
+    vol = rec_f[r, 35]
+    rel_w = wp.vec3d(rec_f[r, 36] - rec_f[r, 42], rec_f[r, 37] - rec_f[r, 43], rec_f[r, 38] - rec_f[r, 44])
+    rel_a = wp.vec3d(rec_f[r, 39] - rec_f[r, 45], rec_f[r, 40] - rec_f[r, 46], rec_f[r, 41] - rec_f[r, 47])
+    area = wp.length(c)
+    e = offset + r
+    row_keys[e] = row
+    row_values[e, 0] = wp.dot(c, rel_w)
+    row_values[e, 1] = wp.dot(c, rel_a)
+    row_values[e, 2] = vol * inv_tau[own]
+    row_values[e, 3] = vol
+    for d in range(3):
+        row_values[e, 4 + d] = sigma * c[d]
+        row_values[e, 7 + d] = sigma * area * rel_w[d]
+        row_values[e, 10 + d] = sigma * area * rel_a[d]
+    row_values[e, 13] = area
+    for side in range(2):
+        body = own
+        sign = wp.float64(1.0)
+        if side == 1:
+            body = other
+            sign = wp.float64(-1.0)
+        cq = sign * (wp.transpose(axes[body]) * c)
+        g = sign * sigma * area
+        base = rec_i[r, 2 + side]
+        shape = node_shape[body]
+        for k in range(8):
+            n = base + ((k // 4) * shape[1] + (k // 2) % 2) * shape[2] + k % 2
+            w = rec_f[r, 8 * side + k]
+            j = 16 * e + 8 * side + k
+            node_keys[j] = (wp.int64(body) * rows + row) * nodes + wp.int64(n)
+            node_values[j, 0] = w * cq[0]
+            node_values[j, 1] = w * cq[1]
+            node_values[j, 2] = w * cq[2]
+            node_values[j, 3] = w * g
+            node_values[j, 4] = w
+            node_mass[j] = rec_f[r, 16 + 8 * side + k]

@@ -4,7 +4,9 @@ GPU, the kernels' summed GPU time, for one scene after it has reached its contac
     python tools/profile_world.py --scene eol_two_spheres --resolution 32 --skip 4 --frames 2 --device cuda:0
 
 Prints one JSON object: ms per frame without the profiler (median of ``--frames``), EoL world
-steps per frame, the kernels' GPU ms per frame, and the top host functions per frame.
+steps per frame, the kernels' GPU ms per frame, the top host functions per frame, and (EoL
+contact) wall-clock ms per EoL world step of the stages of ``wsim.eol.body._step_together``,
+timed by wrappers around them without the profiler (its overhead inflates Python-heavy code).
 """
 
 from __future__ import annotations
@@ -70,6 +72,41 @@ if device.is_cuda:
     out["gpu_ms_per_frame"] = sum(v[1] for v in per.values()) / args.frames
     out["kernels"] = {k: {"launches": v[0] / args.frames, "ms": v[1] / args.frames}
                       for k, v in sorted(per.items(), key=lambda kv: -kv[1][1])[:12]}
+# wall-clock timers around the EoL contact stages (no profiler: its overhead inflates Python-heavy code)
+from wsim.eol import body as eol_body, pairs as eol_pairs  # noqa: E402
+
+spent: dict = defaultdict(float)
+calls: dict = defaultdict(int)
+
+
+def timed(owner, name: str) -> None:
+    fn = getattr(owner, name)
+
+    def wrapper(*a, **k):
+        t0 = time.perf_counter()
+        try:
+            return fn(*a, **k)
+        finally:
+            spent[name] += time.perf_counter() - t0
+            calls[name] += 1
+    setattr(owner, name, wrapper)
+
+
+for n in ("entries_device", "rows_from_entries", "joint_system", "row_friction", "moment_couples", "node_changes",
+          "own_rows_at", "slip_change", "friction_changes"):
+    timed(eol_pairs, n)
+for n in ("_rows_between", "_solve", "_problems", "solve_contact"):
+    timed(eol_body, n)
+for n in ("_step_forces", "_step_own_rows", "_step_contact", "_step_split", "_step_finish", "_pair_samples"):
+    timed(eol_body.EolBody, n)
+s0, t = eol_steps(), time.perf_counter()
+for _ in range(args.frames):
+    world.step()
+wp.synchronize_device(device)
+n_steps = max(eol_steps() - s0, 1)
+out["timed_ms_per_eol_step"] = round(1e3 * (time.perf_counter() - t) / n_steps, 3)
+out["stage_ms_per_eol_step"] = {k: round(1e3 * v / n_steps, 3) for k, v in sorted(spent.items(), key=lambda kv: -kv[1])}
+out["stage_calls_per_eol_step"] = {k: round(v / n_steps, 2) for k, v in calls.items()}
 pr = cProfile.Profile()
 pr.enable()
 for _ in range(args.frames):

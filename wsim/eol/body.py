@@ -1348,10 +1348,11 @@ class EolBody(VertexImpulses, Body):
             self._launch(kc.world_surface, n, [self._surface, self._world_points])
             self._world_mesh.refit()
 
-    def _pair_samples(self, others: list[tuple[EolBody, int, int, float]]) -> tuple[np.ndarray, np.ndarray]:
+    def _pair_samples(self, others: list[tuple[EolBody, int, int, float]]) -> tuple[wp.array, wp.array, int]:
         """Records of this body's samples inside other EoL bodies (``kernels.eol_contact.pair_samples``):
         (other body, whether this body is the pair's A, pair index, query reach [m]) each; the
-        buffer grows when a step has more records than it holds. Returns (rec_i, rec_f) on the host."""
+        buffer grows when a step has more records than it holds. Returns the device arrays
+        (rec_i, rec_f) and the number of records in them."""
         d = self._device
         P = self._surface.sample_face.shape[0]
         if getattr(self, "_pair_count", None) is None:
@@ -1374,7 +1375,7 @@ class EolBody(VertexImpulses, Body):
                               self._pair_rec_i, self._pair_rec_f])
             n = int(self._pair_count.numpy()[0])
             if n <= self._pair_rec_i.shape[0]:
-                return self._pair_rec_i[:n].numpy(), self._pair_rec_f[:n].numpy()
+                return self._pair_rec_i, self._pair_rec_f, n
             self._pair_capacity = 2 * n
 
     def _friction(self, m: int, dt: float) -> None:
@@ -1540,8 +1541,9 @@ def _step_together(bodies: Sequence[EolBody], keys: Sequence[int], cap: float) -
 
 def _rows_between(bodies: Sequence[EolBody], keys: Sequence[int], works: list[_StepWork]) -> pairs.PairRows | None:
     """The contact rows between bodies whose grid boxes overlap: every sample of each inside the
-    other's tracked surface, on the device (``kernels.eol_contact.pair_samples``); only those
-    samples' records reach the host, which assembles the rows (``wsim.eol.pairs.assemble``)."""
+    other's tracked surface, on the device (``kernels.eol_contact.pair_samples``), summed there
+    per row and per (body, row, node) (``wsim.eol.pairs.entries_device``); the host makes the
+    rows' sparse matrices from the sums (``wsim.eol.pairs.rows_from_entries``)."""
     from wsim.contact import pair_friction
 
     boxes = []
@@ -1564,18 +1566,23 @@ def _rows_between(bodies: Sequence[EolBody], keys: Sequence[int], works: list[_S
     for p, (i, j, _) in enumerate(found):
         launches.setdefault(i, []).append((j, 1, p))
         launches.setdefault(j, []).append((i, 0, p))
-    records = []
+    buffers = []
     for k, todo in launches.items():
-        ri, rf = bodies[k]._pair_samples([(bodies[o], a, p, float(np.linalg.norm(boxes[o][1] - boxes[o][0])))
-                                          for o, a, p in todo])
-        if len(ri):
-            records.append((k, ri, rf))
+        ri, rf, n = bodies[k]._pair_samples([(bodies[o], a, p, float(np.linalg.norm(boxes[o][1] - boxes[o][0])))
+                                             for o, a, p in todo])
+        if n:
+            buffers.append((k, ri, rf, n))
+    if not buffers:
+        return None
     infos = [pairs.BodyInfo(node_shape=b.grid.node_shape, origin=np.asarray(b.grid.origin, dtype=np.float64), h=b.grid.h,
                             F=b.state.F, T=b.state.T, Q=b._axes(), inv_tau=1.0 / b._positive["contact_relaxation"],
-                            key=int(key)) for b, key in zip(bodies, keys)]
-    rows = pairs.assemble(records, found, infos)
-    if rows is None:
-        return None
+                            key=int(key), ccells=tuple(int(c) for c in b._ccells)) for b, key in zip(bodies, keys)]
+    # the records are summed per row and per (body, row, node) on the device: only the sums reach
+    # the host (the records of two 32-cell spheres in contact were 2 MB and ~10 ms of numpy a step)
+    lead = bodies[0]
+    if getattr(lead, "_pair_scratch", None) is None or lead._pair_scratch.device != lead._device:
+        lead._pair_scratch = pairs.PairScratch(lead._device)
+    rows = pairs.rows_from_entries(pairs.entries_device(buffers, found, infos, lead._pair_scratch), found, infos)
     for k, side in rows.sides.items():  # each body's own rows at the nodes the rows between bodies touch
         w, b = works[k], bodies[k]
         if w.m:

@@ -17,10 +17,13 @@ other). There is no lag: the explicit exchange these rows replace, where the lig
 itself out of the other's surface and handed it the push one coupling interval later, rang on
 fine grids (16 bodies at 32 cells reached 7.6e5 m/s).
 
-Rows are assembled here on the host from the samples' records (only samples inside another body
-travel), per body as sparse matrices over the rows and nodes it touches, built from the samples'
-entries summed per (row, node) without a sort by scipy (which took 20 ms a step for two 32-cell
-spheres on an H100's host; dense matrices over the touched nodes 5-10 ms). The joint QP's dual matrix is
+The samples' records stay on the device: each becomes one entry of its row and one entry per
+corner of each body's cell (``kernels.eol_contact.pair_entries``), and the entries are summed
+per key there (``entries_device``: a sort, one thread per key, ``wsim.segments``). The host gets
+one row of sums per row and per (body, row, node), and makes each body's sparse matrices over the
+rows and nodes it touches from them (``rows_from_entries``; the records of two 32-cell spheres in
+contact were ~5,000 of 53 numbers, and their numpy assembly ~11 ms a step on an H100's host).
+``entries_host`` is the same sum in numpy, the reference. The joint QP's dual matrix is
 S = sum_bodies J_b M_b^-1 J_b^T over all rows of the touching bodies: each body's own rows keep
 the block its device assembly made, the rows between bodies add theirs and the cross terms with
 the own rows at the nodes both touch.
@@ -37,9 +40,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
+import warp as wp
 
 from wsim.eol.contact import ContactSystem
+from wsim.kernels import eol_contact as kc
 from wsim.kernels.eol_contact import PAIR_RECORD
+from wsim.segments import KeySums
 
 #: warm-start ids of rows between bodies, kept in body A's ``active_rows`` beside its own rows'
 #: (< 2**31): PAIR_ID (1 + B's key) + A's collision cell
@@ -60,7 +66,7 @@ def corner_offsets(node_shape: tuple[int, int, int]) -> np.ndarray:
 class BodyInfo:
     """What the assembly needs of a body in the group: its grid (nodes per axis, origin, h), its
     Lagrangian map x = F y + T, Q (velocity axes -> world), 1 / tau of its overlap relaxation, its
-    key in the World (warm-start ids)."""
+    key in the World (warm-start ids) and its collision cells per axis."""
 
     node_shape: tuple[int, int, int]
     origin: np.ndarray
@@ -70,6 +76,7 @@ class BodyInfo:
     Q: np.ndarray
     inv_tau: float
     key: int
+    ccells: tuple[int, int, int]
 
     def node_positions(self, nodes: np.ndarray) -> np.ndarray:
         """(n, 3) world positions of flat grid nodes."""
@@ -146,108 +153,187 @@ class PairRows:
                         slip_w=self.slip_w[idx], slip_a=self.slip_a[idx], mu=self.mu[idx], sides=sides)
 
 
-def assemble(records: list[tuple[int, np.ndarray, np.ndarray]], pairs: list[tuple[int, int, float]],
-             bodies: list[BodyInfo]) -> PairRows | None:
-    """The rows between bodies from the samples' records: (own body's group index, rec_i (N, 5),
-    rec_f (N, ``PAIR_RECORD``)) per body (``kernels.eol_contact.pair_samples``); ``pairs`` (A, B,
-    friction) by pair index. None when no sample is inside another body."""
-    if not records:
-        return None
+@dataclass(frozen=True)
+class Entries:
+    """The rows between bodies summed per key (``kernels.eol_contact.pair_entries``; on the device
+    by ``entries_device``, on the host by ``entries_host``): ``row_keys`` (m,) ascending (pair p,
+    A's collision cell k: p ``row_stride`` + k) with their sums ``row_values`` (m,
+    ``PAIR_ROW_VALUES``), and ``node_keys`` (E,) ascending ((X ``rows`` + row key) ``nodes`` + node:
+    body X's grid node n in the row) with their sums ``node_values`` (E, ``PAIR_NODE_VALUES``) and
+    each node's mass."""
+
+    row_keys: np.ndarray
+    row_values: np.ndarray
+    node_keys: np.ndarray
+    node_values: np.ndarray
+    node_mass: np.ndarray
+    row_stride: int
+    rows: int
+    nodes: int
+
+
+def key_strides(pairs: list[tuple[int, int, float]], bodies: list[BodyInfo]) -> tuple[int, int, int]:
+    """(row_stride, rows, nodes) of the entries' keys: the collision cells of any body, all row
+    keys, the nodes of any grid."""
+    row_stride = max(int(np.prod(b.ccells)) for b in bodies)
+    rows = len(pairs) * row_stride
+    nodes = max(int(np.prod(b.node_shape)) for b in bodies)
+    if len(bodies) * rows * nodes >= 2**62:  # ~1e18: thousands of bodies of 10^6 nodes
+        raise ValueError(f"contact between {len(bodies)} EoL bodies: {len(pairs)} pairs of grids up to {nodes} nodes "
+                         "do not fit the rows' 63-bit keys")
+    return row_stride, rows, nodes
+
+
+def entries_host(records: list[tuple[int, np.ndarray, np.ndarray]], pairs: list[tuple[int, int, float]],
+                 bodies: list[BodyInfo], strides: tuple[int, int, int]) -> Entries:
+    """``Entries`` from the samples' records on the host: ``kernels.eol_contact.pair_entries`` in
+    numpy (the reference for the device path, and its fallback)."""
+    row_stride, n_rows, n_nodes = strides
     own = np.concatenate([np.full(len(ri), b, dtype=np.int64) for b, ri, _ in records])
     ri = np.concatenate([r for _, r, _ in records]).astype(np.int64)
     rf = np.concatenate([f for _, _, f in records]).reshape(-1, PAIR_RECORD)
     pair_ab = np.array([(a, b) for a, b, _ in pairs], dtype=np.int64).reshape(-1, 2)
     pair, own_is_a = ri[:, 0], ri[:, 1] != 0
     other = np.where(own_is_a, pair_ab[pair, 1], pair_ab[pair, 0])
-    cells = int(ri[:, 4].max()) + 1
-    keys, first, row = np.unique(pair * cells + ri[:, 4], return_index=True, return_inverse=True)
-    row = row.reshape(-1)
-    m = len(keys)
-    c = rf[:, 32:35]
-    vol = rf[:, 35]
+    row = pair * row_stride + ri[:, 4]
+    c, vol = rf[:, 32:35], rf[:, 35]
     sigma = np.where(own_is_a, 1.0, -1.0)
     rel_w = rf[:, 36:39] - rf[:, 42:45]  # own - other, world
     rel_a = rf[:, 39:42] - rf[:, 45:48]
-    inv_tau = np.array([b.inv_tau for b in bodies])[own]
-
-    def per_row(v: np.ndarray) -> np.ndarray:
-        if v.ndim == 1:
-            return np.bincount(row, v, minlength=m)
-        return np.stack([np.bincount(row, v[:, d], minlength=m) for d in range(v.shape[1])], axis=1)
-
     area = np.linalg.norm(c, axis=1)
-    total = per_row(area)[row]
-    share = area / np.where(total > 0.0, total, 1.0)  # the sample's share of its row's slip and friction
-    row_pair = pair[first]
+    inv_tau = np.array([b.inv_tau for b in bodies])[own]
+    row_values = np.column_stack([np.einsum("ij,ij->i", c, rel_w), np.einsum("ij,ij->i", c, rel_a), vol * inv_tau, vol,
+                                  sigma[:, None] * c, (sigma * area)[:, None] * rel_w,
+                                  (sigma * area)[:, None] * rel_a, area])
+    keys, vals, mass = [], [], []
+    for side, body, sign in ((0, own, 1.0), (1, other, -1.0)):
+        Q = np.stack([bodies[b].Q for b in range(len(bodies))])[body]  # (N, 3, 3)
+        cq = sign * np.einsum("nij,ni->nj", Q, c)  # Q^T c
+        shape = np.array([b.node_shape for b in bodies], dtype=np.int64)[body]
+        k = np.arange(8)
+        node = (ri[:, 2 + side][:, None] + ((k // 4) * shape[:, 1:2] + (k // 2) % 2) * shape[:, 2:3] + k % 2)
+        w = rf[:, 8 * side:8 * side + 8]
+        keys.append((body[:, None] * n_rows + row[:, None]) * n_nodes + node)
+        vals.append(np.concatenate([w[:, :, None] * cq[:, None, :], (w * (sign * sigma * area)[:, None])[:, :, None],
+                                    w[:, :, None]], axis=2))
+        mass.append(rf[:, 16 + 8 * side:24 + 8 * side])
+    # entry order as the device's (16 per record, own side first) so the sums are the same
+    keys_ = np.stack(keys, axis=1).reshape(-1)
+    vals_ = np.stack(vals, axis=1).reshape(-1, vals[0].shape[2])
+    mass_ = np.stack(mass, axis=1).reshape(-1)
+    uk, first, inv = np.unique(keys_, return_index=True, return_inverse=True)
+    ur, rinv = np.unique(row, return_inverse=True)
+
+    def summed(v: np.ndarray, idx: np.ndarray, n: int) -> np.ndarray:
+        return np.stack([np.bincount(idx.reshape(-1), v[:, q], minlength=n) for q in range(v.shape[1])], axis=1)
+
+    return Entries(row_keys=ur, row_values=summed(row_values, rinv, len(ur)), node_keys=uk,
+                   node_values=summed(vals_, inv, len(uk)), node_mass=mass_[first], row_stride=row_stride,
+                   rows=n_rows, nodes=n_nodes)
+
+
+def rows_from_entries(entries: Entries, pairs: list[tuple[int, int, float]], bodies: list[BodyInfo]) -> PairRows:
+    """``PairRows`` from the summed entries: the rows' sums, and each body's side as CSR matrices
+    over the nodes its entries touch (entries with no material, zero weight, dropped)."""
+    e = entries
+    pair_ab = np.array([(a, b) for a, b, _ in pairs], dtype=np.int64).reshape(-1, 2)
+    row_pair, cell = e.row_keys // e.row_stride, e.row_keys % e.row_stride
+    total = e.row_values[:, 13]
+    per_area = 1.0 / np.where(total > 0.0, total, 1.0)  # a sample's share of its row: |c| / the row's sum
     out = PairRows(
-        ids=PAIR_ID * (1 + np.array([bodies[b].key for b in pair_ab[row_pair, 1]], dtype=np.int64)) + keys % cells,
-        owner=pair_ab[row_pair, 0],
-        bodies=pair_ab[row_pair],
-        Jw=per_row(np.einsum("ij,ij->i", c, rel_w)),
-        Ja=per_row(np.einsum("ij,ij->i", c, rel_a)),
-        b=-per_row(vol * inv_tau),
-        overlap=per_row(vol),
-        D=per_row(sigma[:, None] * c),
-        slip_w=per_row((share * sigma)[:, None] * rel_w),
-        slip_a=per_row((share * sigma)[:, None] * rel_a),
-        mu=np.array([pairs[p][2] for p in row_pair]),
-    )
-    # each body's side: its own samples (+c, sampling sign sigma) and the other's inside it (-c,
-    # -sigma), summed per (row, cell of the body) before they are spread on the cell's 8 corners:
-    # a row's tens of samples lie in a few cells (two 32-cell spheres in contact: ~2,600 samples
-    # of each inside the other, ~120 rows), and every array after this is per corner
-    for b in np.unique(np.concatenate([own, other])):
+        ids=PAIR_ID * (1 + np.array([bodies[b].key for b in pair_ab[row_pair, 1]], dtype=np.int64)) + cell,
+        owner=pair_ab[row_pair, 0], bodies=pair_ab[row_pair], Jw=e.row_values[:, 0].copy(),
+        Ja=e.row_values[:, 1].copy(), b=-e.row_values[:, 2], overlap=e.row_values[:, 3].copy(),
+        D=e.row_values[:, 4:7].copy(), slip_w=e.row_values[:, 7:10] * per_area[:, None],
+        slip_a=e.row_values[:, 10:13] * per_area[:, None], mu=np.array([pairs[p][2] for p in row_pair]))
+    keep = e.node_values[:, 4] > 0.0  # a corner without material
+    key, vals, mass = e.node_keys[keep], e.node_values[keep], e.node_mass[keep]
+    node, rest = key % e.nodes, key // e.nodes
+    body, row = rest // e.rows, np.searchsorted(e.row_keys, rest % e.rows)
+    m = out.m
+    # entries are sorted by body, row, node: each body's a contiguous block in CSR order
+    for b in np.unique(body):
+        lo, hi = np.searchsorted(body, [b, b + 1])
         info = bodies[b]
-        offsets = corner_offsets(info.node_shape)
-        n_grid = int(np.prod(info.node_shape))
-        rows, nodes, mass, coeff, slip = [], [], [], [], []
-        for mine, col, sign in ((own == b, 0, 1.0), (other == b, 1, -1.0)):
-            idx = np.flatnonzero(mine)
-            if not len(idx):
-                continue
-            base = ri[idx, 2 + col]
-            key = row[idx] * n_grid + base
-            order = np.argsort(key, kind="stable")
-            starts = np.flatnonzero(np.concatenate([[True], key[order][1:] != key[order][:-1]]))
-            head = order[starts]  # each (row, cell) group's first sample
-            wts = rf[idx, 8 * col:8 * col + 8]
-            cq = sign * (c[idx] @ info.Q)  # world -> velocity axes: Q^T c
-            per_sample = np.concatenate([(wts[:, :, None] * cq[:, None, :]).reshape(-1, 24),
-                                         wts * (sign * sigma[idx] * share[idx])[:, None], wts], axis=1)
-            per_cell = np.add.reduceat(per_sample[order], starts, axis=0)
-            J_cell, G_cell = per_cell[:, :24].reshape(-1, 8, 3), per_cell[:, 24:32]
-            k = np.nonzero(per_cell[:, 32:] > 0.0)  # the corners with material (weights are >= 0)
-            rows.append(row[idx[head]][k[0]])
-            nodes.append((base[head][:, None] + offsets[None, :])[k])
-            mass.append(rf[idx[head], 16 + 8 * col:24 + 8 * col][k])
-            coeff.append(J_cell[k])
-            slip.append(G_cell[k])
-        rows_, nodes_ = np.concatenate(rows), np.concatenate(nodes)
-        used = np.bincount(rows_, minlength=m) > 0  # no sorting of the nodes: masks and running counts
-        touched_mask = np.bincount(nodes_, minlength=n_grid) > 0
-        touched = np.flatnonzero(touched_mask)
-        lut = np.cumsum(touched_mask) - 1
-        lut[~touched_mask] = -1
+        rows_, nodes_ = row[lo:hi], node[lo:hi]
+        touched = np.unique(nodes_)
+        lut = np.full(int(np.prod(info.node_shape)), -1, dtype=np.int64)
+        lut[touched] = np.arange(len(touched))
         local = lut[nodes_]
+        used = np.bincount(rows_, minlength=m) > 0
         side_rows = np.flatnonzero(used)
-        r_local = (np.cumsum(used) - 1)[rows_]
-        n, ms = len(touched), len(side_rows)
+        ms, n = len(side_rows), len(touched)
         inv_mass = np.zeros(n)
-        inv_mass[local] = 1.0 / np.concatenate(mass)
-        vals = np.concatenate(coeff)
-        # the entries summed per (row, node), in row-major order: CSR without scipy's sort
-        key, inv = np.unique(r_local * n + local, return_inverse=True)
-        inv = inv.reshape(-1)
-        J_data = np.stack([np.bincount(inv, vals[:, d], minlength=len(key)) for d in range(3)], axis=1)
-        G_data = np.bincount(inv, np.concatenate(slip), minlength=len(key))
-        per_row_nnz = np.bincount(key // n, minlength=ms)
-        ptr = np.concatenate([[0], np.cumsum(per_row_nnz)])
-        col = key % n
-        J = sp.csr_matrix((J_data.ravel(), (3 * col[:, None] + np.arange(3)).ravel(), 3 * ptr), shape=(ms, 3 * n))
-        G = sp.csr_matrix((G_data, col, ptr), shape=(ms, n))
+        inv_mass[local] = 1.0 / mass[lo:hi]
+        ptr = np.concatenate([[0], np.cumsum(np.bincount(rows_, minlength=m)[side_rows])])
+        J = sp.csr_matrix((vals[lo:hi, :3].ravel(), (3 * local[:, None] + np.arange(3)).ravel(), 3 * ptr),
+                          shape=(ms, 3 * n))
+        G = sp.csr_matrix((vals[lo:hi, 3] * per_area[rows_], local, ptr), shape=(ms, n))
         out.sides[int(b)] = Side(rows=side_rows, nodes=touched, inv_mass=inv_mass, x=info.node_positions(touched),
                                  J=J, G=G, Q=info.Q, lut=lut)
     return out
+
+
+def assemble(records: list[tuple[int, np.ndarray, np.ndarray]], pairs: list[tuple[int, int, float]],
+             bodies: list[BodyInfo]) -> PairRows | None:
+    """The rows between bodies from the samples' records on the host: (own body's group index,
+    rec_i (N, 5), rec_f (N, ``PAIR_RECORD``)) per body (``kernels.eol_contact.pair_samples``);
+    ``pairs`` (A, B, friction) by pair index. None when no sample is inside another body. The
+    reference for ``EolBody``'s device path (``entries_device``)."""
+    records = [r for r in records if len(r[1])]
+    if not records:
+        return None
+    return rows_from_entries(entries_host(records, pairs, bodies, key_strides(pairs, bodies)), pairs, bodies)
+
+
+class PairScratch:
+    """Device arrays of ``entries_device`` (grown on demand) and its ``KeySums``."""
+
+    def __init__(self, device: wp.Device) -> None:
+        self.device = device
+        self.sums = KeySums(device)
+        self._records = 0
+
+    def ensure(self, records: int) -> None:
+        if records <= self._records:
+            return
+        n, d = max(records, 2 * self._records, 64), self.device
+        self.row_keys = wp.empty(n, dtype=wp.int64, device=d)
+        self.row_values = wp.empty((n, kc.PAIR_ROW_VALUES), dtype=wp.float64, device=d)
+        self.node_keys = wp.empty(16 * n, dtype=wp.int64, device=d)
+        self.node_values = wp.empty((16 * n, kc.PAIR_NODE_VALUES), dtype=wp.float64, device=d)
+        self.node_mass = wp.empty(16 * n, dtype=wp.float64, device=d)
+        self._records = n
+
+
+def entries_device(buffers: list[tuple[int, wp.array, wp.array, int]], pairs: list[tuple[int, int, float]],
+                   bodies: list[BodyInfo], scratch: PairScratch) -> Entries:
+    """``Entries`` on the device from the records the bodies' ``pair_samples`` launches left there:
+    (group index, rec_i, rec_f, count) per body. Only the sums reach the host: one row per row
+    and per (body, row, node), instead of every record (``entries_host`` is the same in numpy)."""
+    row_stride, n_rows, n_nodes = key_strides(pairs, bodies)
+    total = sum(n for *_, n in buffers)
+    scratch.ensure(total)
+    d = scratch.device
+    pair_ab = np.array([(a, b) for a, b, _ in pairs], dtype=np.int32).reshape(-1, 2)
+    pair_a = wp.array(np.ascontiguousarray(pair_ab[:, 0]), dtype=wp.int32, device=d)
+    pair_b = wp.array(np.ascontiguousarray(pair_ab[:, 1]), dtype=wp.int32, device=d)
+    axes = wp.array(np.stack([b.Q for b in bodies]), dtype=wp.mat33d, device=d)
+    shapes = wp.array(np.array([b.node_shape for b in bodies], dtype=np.int32), dtype=wp.vec3i, device=d)
+    inv_tau = wp.array(np.array([b.inv_tau for b in bodies], dtype=np.float64), dtype=wp.float64, device=d)
+    offset = 0
+    for own, rec_i, rec_f, n in buffers:
+        if n:
+            wp.launch(kc.pair_entries, n, [rec_i, rec_f, own, pair_a, pair_b, axes, shapes, inv_tau,
+                                           wp.int64(row_stride), wp.int64(n_rows), wp.int64(n_nodes), offset,
+                                           scratch.node_keys, scratch.node_values, scratch.node_mass,
+                                           scratch.row_keys, scratch.row_values], device=d)
+        offset += n
+    row_keys, row_values, _ = scratch.sums.sum_by_key(scratch.row_keys, scratch.row_values, None, total)
+    node_keys, node_values, node_mass = scratch.sums.sum_by_key(scratch.node_keys, scratch.node_values,
+                                                                scratch.node_mass, 16 * total)
+    return Entries(row_keys=row_keys, row_values=row_values, node_keys=node_keys, node_values=node_values,
+                   node_mass=node_mass, row_stride=row_stride, rows=n_rows, nodes=n_nodes)
 
 
 def own_rows_at(side: Side, packed: np.ndarray, nodes: np.ndarray) -> np.ndarray:
