@@ -39,11 +39,15 @@ def segment_starts(head: wp.array(dtype=wp.int32), run: wp.array(dtype=wp.int32)
 def segment_sums(keys: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32), run: wp.array(dtype=wp.int32),
                  starts: wp.array(dtype=wp.int32), count: int, values: wp.array2d(dtype=wp.float64),
                  first: wp.array(dtype=wp.float64), out_keys: wp.array(dtype=wp.int64),
-                 out: wp.array2d(dtype=wp.float64), out_first: wp.array(dtype=wp.float64)):
+                 out: wp.array2d(dtype=wp.float64), out_first: wp.array(dtype=wp.float64),
+                 runs: wp.array(dtype=wp.int32), slot: int):
     """Run r: out[r] = sum of values[order[p]] over its positions p, in order; out_keys[r] its
     key; out_first[r] = first[order[p0]] of its first position (a quantity the run's entries
-    share, such as a node's mass, taken once instead of summed). Threads past the last run exit."""
+    share, such as a node's mass, taken once instead of summed); runs[slot] = the number of runs.
+    Threads past the last run exit."""
     r = wp.tid()
+    if r == 0:
+        runs[slot] = run[count - 1]
     if r >= run[count - 1]:
         return
     p0 = starts[r]

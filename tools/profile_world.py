@@ -35,6 +35,9 @@ ap.add_argument("--resolution", type=int, default=None)
 ap.add_argument("--skip", type=int, default=4, help="frames simulated before profiling (compilation, reaching contact)")
 ap.add_argument("--frames", type=int, default=2)
 ap.add_argument("--top", type=int, default=25)
+ap.add_argument("--passes", default="timing,gpu,timers,profile",
+                help="which passes, in this order, each over --frames further frames (contact lasts a few frames: "
+                     "e.g. --passes timers)")
 args = ap.parse_args()
 quiet_warp()
 device = wp.get_device(args.device)
@@ -51,17 +54,19 @@ def eol_steps() -> int:
     return max([b.steps for b in world.bodies if type(b).__name__ == "EolBody"] or [0])
 
 
+passes = args.passes.split(",")
 times, steps = [], []
-for _ in range(args.frames):
+for _ in range(args.frames if "timing" in passes else 0):
     wp.synchronize_device(device)
     s0, t = eol_steps(), time.perf_counter()
     world.step()
     wp.synchronize_device(device)
     times.append(time.perf_counter() - t)
     steps.append(eol_steps() - s0)
-out: dict = {"scene": args.scene, "resolution": args.resolution, "device": device.name,
-             "ms_per_frame": 1e3 * float(np.median(times)), "eol_world_steps_per_frame": float(np.mean(steps))}
-if device.is_cuda:
+out: dict = {"scene": args.scene, "resolution": args.resolution, "device": device.name, "passes": passes}
+if times:
+    out.update(ms_per_frame=1e3 * float(np.median(times)), eol_world_steps_per_frame=float(np.mean(steps)))
+if device.is_cuda and "gpu" in passes:
     wp.timing_begin(cuda_filter=wp.TIMING_ALL)
     for _ in range(args.frames):
         world.step()
@@ -73,49 +78,49 @@ if device.is_cuda:
     out["kernels"] = {k: {"launches": v[0] / args.frames, "ms": v[1] / args.frames}
                       for k, v in sorted(per.items(), key=lambda kv: -kv[1][1])[:12]}
 # wall-clock timers around the EoL contact stages (no profiler: its overhead inflates Python-heavy code)
-from wsim.eol import body as eol_body, pairs as eol_pairs  # noqa: E402
+if "timers" in passes:
+    from wsim.eol import body as eol_body, pairs as eol_pairs
 
-spent: dict = defaultdict(float)
-calls: dict = defaultdict(int)
+    spent: dict = defaultdict(float)
+    counted: dict = defaultdict(int)
 
+    def timed(owner, name: str) -> None:
+        fn = getattr(owner, name)
 
-def timed(owner, name: str) -> None:
-    fn = getattr(owner, name)
+        def wrapper(*a, **k):
+            t0 = time.perf_counter()
+            try:
+                return fn(*a, **k)
+            finally:
+                spent[name] += time.perf_counter() - t0
+                counted[name] += 1
+        setattr(owner, name, wrapper)
 
-    def wrapper(*a, **k):
-        t0 = time.perf_counter()
-        try:
-            return fn(*a, **k)
-        finally:
-            spent[name] += time.perf_counter() - t0
-            calls[name] += 1
-    setattr(owner, name, wrapper)
-
-
-for n in ("entries_device", "rows_from_entries", "joint_system", "row_friction", "moment_couples", "node_changes",
-          "own_rows_at", "slip_change", "friction_changes"):
-    timed(eol_pairs, n)
-for n in ("_rows_between", "_solve", "_problems", "solve_contact"):
-    timed(eol_body, n)
-for n in ("_step_forces", "_step_own_rows", "_step_contact", "_step_split", "_step_finish", "_pair_samples"):
-    timed(eol_body.EolBody, n)
-s0, t = eol_steps(), time.perf_counter()
-for _ in range(args.frames):
-    world.step()
-wp.synchronize_device(device)
-n_steps = max(eol_steps() - s0, 1)
-out["timed_ms_per_eol_step"] = round(1e3 * (time.perf_counter() - t) / n_steps, 3)
-out["stage_ms_per_eol_step"] = {k: round(1e3 * v / n_steps, 3) for k, v in sorted(spent.items(), key=lambda kv: -kv[1])}
-out["stage_calls_per_eol_step"] = {k: round(v / n_steps, 2) for k, v in calls.items()}
-pr = cProfile.Profile()
-pr.enable()
-for _ in range(args.frames):
-    world.step()
-wp.synchronize_device(device)
-pr.disable()
-st = pstats.Stats(pr)
-rows = [(f"{Path(k[0]).name}:{k[1]}:{k[2]}", v[1], v[2], v[3]) for k, v in st.stats.items()]
-out["host_own_ms_per_frame"] = {n: [round(1e3 * own / args.frames, 3), calls // args.frames]
-                                for n, calls, own, _ in sorted(rows, key=lambda r: -r[2])[: args.top]}
-out["host_cum_ms_per_frame"] = {n: round(1e3 * cum / args.frames, 3) for n, _, _, cum in sorted(rows, key=lambda r: -r[3])[: args.top]}
+    for n in ("entries_device", "rows_from_entries", "joint_system", "row_friction", "moment_couples",
+              "node_changes", "own_rows_at", "slip_change", "friction_changes"):
+        timed(eol_pairs, n)
+    for n in ("_rows_between", "_solve", "_problems", "solve_contact"):
+        timed(eol_body, n)
+    for n in ("_step_forces", "_step_own_rows", "_step_contact", "_step_split", "_step_finish", "_pair_samples"):
+        timed(eol_body.EolBody, n)
+    s0, t = eol_steps(), time.perf_counter()
+    for _ in range(args.frames):
+        world.step()
+    wp.synchronize_device(device)
+    n_steps = max(eol_steps() - s0, 1)
+    out["timed_ms_per_eol_step"] = round(1e3 * (time.perf_counter() - t) / n_steps, 3)
+    out["stage_ms_per_eol_step"] = {k: round(1e3 * v / n_steps, 3) for k, v in sorted(spent.items(), key=lambda kv: -kv[1])}
+    out["stage_calls_per_eol_step"] = {k: round(v / n_steps, 2) for k, v in counted.items()}
+if "profile" in passes:
+    pr = cProfile.Profile()
+    pr.enable()
+    for _ in range(args.frames):
+        world.step()
+    wp.synchronize_device(device)
+    pr.disable()
+    st = pstats.Stats(pr)
+    rows = [(f"{Path(k[0]).name}:{k[1]}:{k[2]}", v[1], v[2], v[3]) for k, v in st.stats.items()]
+    out["host_own_ms_per_frame"] = {n: [round(1e3 * own / args.frames, 3), calls // args.frames]
+                                    for n, calls, own, _ in sorted(rows, key=lambda r: -r[2])[: args.top]}
+    out["host_cum_ms_per_frame"] = {n: round(1e3 * cum / args.frames, 3) for n, _, _, cum in sorted(rows, key=lambda r: -r[3])[: args.top]}
 print(json.dumps(out))

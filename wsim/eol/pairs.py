@@ -287,12 +287,15 @@ def assemble(records: list[tuple[int, np.ndarray, np.ndarray]], pairs: list[tupl
 
 
 class PairScratch:
-    """Device arrays of ``entries_device`` (grown on demand) and its ``KeySums``."""
+    """Device arrays of ``entries_device`` (grown on demand), its two ``KeySums`` and the small
+    per-body tables it last uploaded (uploaded again only when they change)."""
 
     def __init__(self, device: wp.Device) -> None:
         self.device = device
-        self.sums = KeySums(device)
+        self.row_sums = KeySums(device)
+        self.node_sums = KeySums(device)
         self._records = 0
+        self._tables: dict[str, tuple[np.ndarray, wp.array]] = {}
 
     def ensure(self, records: int) -> None:
         if records <= self._records:
@@ -305,6 +308,14 @@ class PairScratch:
         self.node_mass = wp.empty(16 * n, dtype=wp.float64, device=d)
         self._records = n
 
+    def table(self, name: str, values: np.ndarray, dtype) -> wp.array:
+        """``values`` on the device, uploaded only if they differ from the last upload of ``name``."""
+        last = self._tables.get(name)
+        if last is None or last[0].shape != values.shape or not np.array_equal(last[0], values):
+            last = (values.copy(), wp.array(values, dtype=dtype, device=self.device))
+            self._tables[name] = last
+        return last[1]
+
 
 def entries_device(buffers: list[tuple[int, wp.array, wp.array, int]], pairs: list[tuple[int, int, float]],
                    bodies: list[BodyInfo], scratch: PairScratch) -> Entries:
@@ -316,11 +327,11 @@ def entries_device(buffers: list[tuple[int, wp.array, wp.array, int]], pairs: li
     scratch.ensure(total)
     d = scratch.device
     pair_ab = np.array([(a, b) for a, b, _ in pairs], dtype=np.int32).reshape(-1, 2)
-    pair_a = wp.array(np.ascontiguousarray(pair_ab[:, 0]), dtype=wp.int32, device=d)
-    pair_b = wp.array(np.ascontiguousarray(pair_ab[:, 1]), dtype=wp.int32, device=d)
-    axes = wp.array(np.stack([b.Q for b in bodies]), dtype=wp.mat33d, device=d)
-    shapes = wp.array(np.array([b.node_shape for b in bodies], dtype=np.int32), dtype=wp.vec3i, device=d)
-    inv_tau = wp.array(np.array([b.inv_tau for b in bodies], dtype=np.float64), dtype=wp.float64, device=d)
+    pair_a = scratch.table("pair_a", np.ascontiguousarray(pair_ab[:, 0]), wp.int32)
+    pair_b = scratch.table("pair_b", np.ascontiguousarray(pair_ab[:, 1]), wp.int32)
+    axes = scratch.table("axes", np.stack([b.Q for b in bodies]), wp.mat33d)
+    shapes = scratch.table("shapes", np.array([b.node_shape for b in bodies], dtype=np.int32), wp.vec3i)
+    inv_tau = scratch.table("inv_tau", np.array([b.inv_tau for b in bodies], dtype=np.float64), wp.float64)
     offset = 0
     for own, rec_i, rec_f, n in buffers:
         if n:
@@ -329,9 +340,10 @@ def entries_device(buffers: list[tuple[int, wp.array, wp.array, int]], pairs: li
                                            scratch.node_keys, scratch.node_values, scratch.node_mass,
                                            scratch.row_keys, scratch.row_values], device=d)
         offset += n
-    row_keys, row_values, _ = scratch.sums.sum_by_key(scratch.row_keys, scratch.row_values, None, total)
-    node_keys, node_values, node_mass = scratch.sums.sum_by_key(scratch.node_keys, scratch.node_values,
-                                                                scratch.node_mass, 16 * total)
+    scratch.row_sums.launch(scratch.row_keys, scratch.row_values, None, total)
+    scratch.node_sums.launch(scratch.node_keys, scratch.node_values, scratch.node_mass, 16 * total)
+    (row_keys, row_values, _), (node_keys, node_values, node_mass) = KeySums.fetch_all([scratch.row_sums,
+                                                                                        scratch.node_sums])
     return Entries(row_keys=row_keys, row_values=row_values, node_keys=node_keys, node_values=node_values,
                    node_mass=node_mass, row_stride=row_stride, rows=n_rows, nodes=n_nodes)
 
