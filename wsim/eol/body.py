@@ -1671,9 +1671,10 @@ def _solve(bodies: Sequence[EolBody], works: list[_StepWork], rows: pairs.PairRo
     P = pairs.row_friction(sub, lam0 + dt_guess * lam1, slip)
     for k in sub.sides:  # the dt-independent part carries the friction
         dv0[k] = dv0[k] + pairs.friction_changes(sub, k, P)
-    for dv in (dv0, dv1):  # each pair's angular momentum kept
-        for k, couple in pairs.moment_couples(sub, dv).items():
-            dv[k] = dv[k] + couple
+    # each pair's angular momentum kept, for both parts at once
+    couples = pairs.moment_couples(sub, {k: np.stack([dv0[k], dv1[k]]) for k in dv0})
+    for k, couple in couples.items():
+        dv0[k], dv1[k] = dv0[k] + couple[0], dv1[k] + couple[1]
     for k in members:
         st = bodies[k].state
         own_ids = works[k].system.ids[works[k].sol.active] if works[k].sol is not None else np.zeros(0, np.int64)

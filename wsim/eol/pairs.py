@@ -442,14 +442,13 @@ def row_friction(rows: PairRows, lam: np.ndarray, slip: np.ndarray) -> np.ndarra
         rows._cache["K"] = (K, np.diag(K).copy(), 1.0 / np.maximum(np.abs(K).sum(axis=1), 1e-300))
     K, diag, step = rows._cache["K"]
 
-    def tangential(v: np.ndarray) -> np.ndarray:
-        return v - np.einsum("ij,ij->i", v, n)[:, None] * n
-
     tol = FRICTION_TOLERANCE * float(bound.max())
+    step = step[:, None]
     for _ in range(FRICTION_SWEEPS):
-        u = tangential(slip + K @ P)
-        new = tangential(P - step[:, None] * u)
-        size = np.linalg.norm(new, axis=1)
+        u = slip + K @ P
+        u -= np.einsum("ij,ij->i", u, n)[:, None] * n  # tangential: P stays tangential, and so the update
+        new = P - step * u
+        size = np.sqrt(np.einsum("ij,ij->i", new, new))
         new *= np.minimum(1.0, bound / np.maximum(size, 1e-300))[:, None]
         done = float(np.abs(new - P).max()) <= tol
         P = new
@@ -476,33 +475,74 @@ def moment_couples(rows: PairRows, changes: dict[int, np.ndarray]) -> dict[int, 
     either body (about each region's mass centroid xbar_b): no net force, the least kinetic energy
     for that moment (one omega, (I_A + I_B) omega = -tau with I_b the regions' inertia tensors).
     With the centroids left uncorrected a frictionless glancing blow of two 6-cell spheres gained
-    4.9 % of |L|; weights moved onto the sample instead put the push back on light nodes."""
-    if "regions" not in rows._cache:  # per pair: the nodes its rows touch in each body, their inertia
-        regions = []
-        for a, b in sorted({(int(p), int(q)) for p, q in rows.bodies}):
-            on = (rows.bodies[:, 0] == a) & (rows.bodies[:, 1] == b)
-            inertia = np.zeros((3, 3))
-            parts = []
-            for k in (a, b):
-                side = rows.sides[k]
-                mine = on[side.rows]  # the pair's rows among this side's (all of them for two bodies)
-                G = side.G if mine.all() else side.G[np.flatnonzero(mine)]
-                used = np.flatnonzero(np.bincount(G.indices[G.data != 0.0], minlength=G.shape[1]) > 0)
-                m = 1.0 / side.inv_mass[used]
-                x = side.x[used]
-                r = x - (m @ x) / m.sum()
-                inertia += (m * (r * r).sum(axis=1)).sum() * np.eye(3) - (r * m[:, None]).T @ r
-                parts.append((k, used, m, x, r))
-            regions.append((np.linalg.pinv(inertia, rcond=1e-12), parts))
-        rows._cache["regions"] = regions
-    out = {b: np.zeros_like(dv) for b, dv in changes.items()}
-    for inverse, parts in rows._cache["regions"]:
-        tau = sum((m[:, None] * np.cross(x, changes[k][used] @ rows.sides[k].Q.T)).sum(axis=0)
-                  for k, used, m, x, _ in parts)
-        omega = -inverse @ tau
-        for k, used, _, _, r in parts:
-            out[k][used] += np.cross(omega, r) @ rows.sides[k].Q  # world -> velocity axes
-    return out
+    4.9 % of |L|; weights moved onto the sample instead put the push back on light nodes.
+    ``changes`` may carry a leading stack axis ((..., n, 3): dv0 and dv1 of a step at once),
+    each slice getting its own couple; the pairs are summed in one pass per body."""
+    if "couples" not in rows._cache:
+        rows._cache["couples"] = _couple_regions(rows)
+    inverse, parts = rows._cache["couples"]
+    lead = next(iter(changes.values())).shape[:-2]  # a stack of changes (dv0, dv1) gets a couple each
+    tau = np.zeros(lead + (len(inverse), 3))
+    for k, p in parts.items():
+        dv = changes[k][..., p.nodes, :] @ rows.sides[k].Q.T  # world
+        tau += p.onehot @ (p.m[:, None] * np.cross(p.x, dv))
+    omega = -np.einsum("rij,...rj->...ri", inverse, tau)
+    out = {}
+    for k, p in parts.items():
+        dv = np.cross(omega[..., p.region, :], p.r) @ rows.sides[k].Q  # world -> velocity axes, (..., E, 3)
+        flat = np.moveaxis(dv, -2, 0).reshape(dv.shape[-2], -1)
+        # a node in several regions (a body touching two others there) gets the sum of their couples
+        out[k] = np.moveaxis((p.spread @ flat).reshape((p.spread.shape[0],) + lead + (3,)), 0, -2)
+    return {k: out[k] if k in out else np.zeros_like(dv) for k, dv in changes.items()}
+
+
+@dataclass(frozen=True)
+class CoupleParts:
+    """One body's parts of the couples' regions, concatenated (E entries): its touched ``nodes``
+    (indices into its side's nodes), ``region`` of each, ``onehot`` (R x E) and ``spread``
+    (n x E, sparse) that sum entries per region and per node, mass ``m``, world position ``x`` and
+    ``r`` = x - the part's mass centroid."""
+
+    nodes: np.ndarray
+    region: np.ndarray
+    onehot: np.ndarray
+    spread: sp.csr_matrix
+    m: np.ndarray
+    x: np.ndarray
+    r: np.ndarray
+
+
+def _couple_regions(rows: PairRows) -> tuple[np.ndarray, dict[int, CoupleParts]]:
+    """The couples' regions, made once a step: per pair, the nodes its rows touch in each body
+    about each part's mass centroid, and the inverse (R, 3, 3) of each pair's summed inertia;
+    per body its ``CoupleParts``."""
+    inertia, entries = [], {}
+    for reg, (a, b) in enumerate(sorted({(int(p), int(q)) for p, q in rows.bodies})):
+        on = (rows.bodies[:, 0] == a) & (rows.bodies[:, 1] == b)
+        total = np.zeros((3, 3))
+        for k in (a, b):
+            side = rows.sides[k]
+            mine = on[side.rows]  # the pair's rows among this side's (all of them for two bodies)
+            G = side.G if mine.all() else side.G[np.flatnonzero(mine)]
+            used = np.flatnonzero(np.bincount(G.indices[G.data != 0.0], minlength=G.shape[1]) > 0)
+            m = 1.0 / side.inv_mass[used]
+            x = side.x[used]
+            r = x - (m @ x) / m.sum()
+            total += (m * (r * r).sum(axis=1)).sum() * np.eye(3) - (r * m[:, None]).T @ r
+            entries.setdefault(k, []).append((reg, used, m, x, r))
+        inertia.append(total)
+    parts = {}
+    for k, got in entries.items():
+        nodes = np.concatenate([g[1] for g in got])
+        region = np.concatenate([np.full(len(g[1]), g[0]) for g in got])
+        e = np.arange(len(nodes))
+        onehot = np.zeros((len(inertia), len(nodes)))
+        onehot[region, e] = 1.0
+        spread = sp.csr_matrix((np.ones(len(nodes)), (nodes, e)), shape=(len(rows.sides[k].nodes), len(nodes)))
+        parts[k] = CoupleParts(nodes=nodes, region=region, onehot=onehot, spread=spread,
+                               m=np.concatenate([g[2] for g in got]), x=np.concatenate([g[3] for g in got]),
+                               r=np.concatenate([g[4] for g in got]))
+    return np.linalg.pinv(np.array(inertia), rcond=1e-12), parts
 
 
 def slip_change(rows: PairRows, changes: dict[int, np.ndarray]) -> np.ndarray:
