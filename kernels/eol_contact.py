@@ -646,6 +646,17 @@ def world_surface(surf: ContactSurface, out: wp.array(dtype=wp.vec3)):
     out[i] = wp.vec3(float(x[0]), float(x[1]), float(x[2]))
 
 
+@wp.kernel
+def surface_bounds(points: wp.array(dtype=wp.vec3), slot: int, bounds: wp.array2d(dtype=wp.float32)):
+    """The bounding box of a surface's points: bounds[slot, 0:3] min, bounds[slot, 3:6] max (atomic;
+    start from +inf and -inf)."""
+    i = wp.tid()
+    p = points[i]
+    for d in range(3):
+        wp.atomic_min(bounds, slot, d, p[d])
+        wp.atomic_max(bounds, slot, 3 + d, p[d])
+
+
 #: floats of one pair sample's record (``pair_samples``)
 PAIR_RECORD = 48
 

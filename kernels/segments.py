@@ -1,9 +1,9 @@
-"""Sums of rows that share a key, after a sort by key (``wsim.segments.sum_by_key``).
+"""Sums of rows that share a key, after a sort by key (``wsim.segments.KeySums``).
 
 A radix sort (``wp.utils.radix_sort_pairs``) puts equal keys next to each other with their entry
 ids in input order (it is stable); these kernels mark where each run of equal keys starts, and
-sum each run's rows in that order, one thread per run: the sum is deterministic (no atomics),
-and the same from run to run.
+sum each run's rows in that order, one thread per run: no atomics, so the sum is fixed by the
+entries' order.
 """
 
 from __future__ import annotations

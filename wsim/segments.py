@@ -2,8 +2,10 @@
 
 For assemblies whose entries arrive in no set order (atomic counters) and must be summed per key
 before the host sees them: the host then reads one row per distinct key instead of every entry.
-A stable radix sort, run heads, a scan, and one thread per run summing its rows in input order,
-so the sums are deterministic.
+A stable radix sort, run heads, a scan, and one thread per run summing its rows in input order:
+the sums are deterministic for a given entry order (entries written at slots taken from an atomic
+counter on a GPU come in a varying order, and their sums may differ in the last bits from run to
+run).
 """
 
 from __future__ import annotations
@@ -30,7 +32,9 @@ class KeySums:
     def _ensure(self, count: int, columns: int) -> None:
         if count <= self._capacity and columns <= self._columns:
             return
-        cap, cols, d = max(count, 2 * self._capacity, 64), max(columns, self._columns), self.device
+        grow = count > self._capacity  # more columns alone keep the entry capacity
+        cap = max(count, 2 * self._capacity, 64) if grow else self._capacity
+        cols, d = max(columns, self._columns), self.device
         pinned = d.is_cuda
         self.keys = wp.empty(2 * cap, dtype=wp.int64, device=d)  # the radix sort's double buffer
         self.order = wp.empty(2 * cap, dtype=wp.int32, device=d)
@@ -46,10 +50,12 @@ class KeySums:
                      for a in (self.out_keys, self.out, self.out_first)]
         self._capacity, self._columns = cap, cols
 
-    def launch(self, keys: wp.array, values: wp.array, first: wp.array | None, count: int) -> None:
+    def launch(self, keys: wp.array, values: wp.array, first: wp.array | None, count: int,
+               key_bound: int | None = None) -> None:
         """Sort keys[:count] and sum values[:count] (2-D float64) per key, in entry order;
         ``first`` (float64, optional) is taken from each key's first entry. The inputs are
-        device arrays of at least ``count`` entries, not changed."""
+        device arrays of at least ``count`` entries, not changed. ``key_bound``: the keys are
+        known to lie in [0, key_bound), so the sort passes over that many bits only."""
         self._count, self._q = count, values.shape[1]
         if count == 0:
             return
@@ -57,7 +63,8 @@ class KeySums:
         d = self.device
         wp.copy(self.keys, keys, count=count)
         wp.copy(self.order, self.ids, count=count)
-        wp.utils.radix_sort_pairs(self.keys, self.order, count)
+        end_bit = None if key_bound is None else max(int(key_bound - 1).bit_length(), 1)
+        wp.utils.radix_sort_pairs(self.keys, self.order, count, end_bit=end_bit)
         sorted_keys = self.keys[:count]
         head, run = self.head[:count], self.run[:count]
         wp.launch(ks.segment_heads, count, [sorted_keys, head], device=d)
@@ -71,6 +78,8 @@ class KeySums:
     def fetch_all(sums: list[KeySums]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """Each launched sum's (distinct keys ascending, sums (runs, columns), first) on the host."""
         live = [s for s in sums if s._count]
+        if len({str(s.device) for s in live}) > 1:
+            raise ValueError("KeySums.fetch_all: sums on one device at a time")
         if live:
             counts = np.concatenate([s.runs.numpy() for s in live])  # waits for every launch
             for s, n in zip(live, counts):
@@ -89,8 +98,8 @@ class KeySums:
             out.append((keys[:n].copy(), vals[:n, :s._q].copy(), first[:n].copy()))
         return out
 
-    def sum_by_key(self, keys: wp.array, values: wp.array, first: wp.array | None,
-                   count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def sum_by_key(self, keys: wp.array, values: wp.array, first: wp.array | None, count: int,
+                   key_bound: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``launch`` and ``fetch_all`` of this one sum."""
-        self.launch(keys, values, first, count)
+        self.launch(keys, values, first, count, key_bound)
         return KeySums.fetch_all([self])[0]

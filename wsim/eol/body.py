@@ -1560,8 +1560,24 @@ def _rows_between(bodies: Sequence[EolBody], keys: Sequence[int], works: list[_S
              if np.all(boxes[i][1] >= boxes[j][0]) and np.all(boxes[j][1] >= boxes[i][0])]
     if not found:
         return None
-    for k in sorted({k for i, j, _ in found for k in (i, j)}):
+    near = sorted({k for i, j, _ in found for k in (i, j)})
+    for k in near:
         bodies[k]._place_world_mesh()
+    # a sample inside the other's surface lies in both surfaces' bounding boxes: pairs whose grid
+    # boxes (padded, so larger) overlap but whose surfaces' boxes do not get no sample launches
+    # (in a pile most neighbours' grid boxes overlap; each pair costs two launches and read-backs)
+    d = bodies[0]._device
+    init = np.tile(np.array([np.inf] * 3 + [-np.inf] * 3, dtype=np.float32), (len(bodies), 1))
+    bounds = wp.array(init, dtype=wp.float32, device=d)
+    for k in near:
+        pts = bodies[k]._world_points
+        wp.launch(kc.surface_bounds, pts.shape[0], [pts, k, bounds], device=d)
+    lo_hi = bounds.numpy().astype(np.float64)
+    pad = 1e-4 * max(float(np.linalg.norm(b[1] - b[0])) for b in boxes)  # float32 points
+    found = [f for f in found if np.all(lo_hi[f[0], 3:] + pad >= lo_hi[f[1], :3])
+             and np.all(lo_hi[f[1], 3:] + pad >= lo_hi[f[0], :3])]
+    if not found:
+        return None
     launches: dict[int, list[tuple]] = {}
     for p, (i, j, _) in enumerate(found):
         launches.setdefault(i, []).append((j, 1, p))

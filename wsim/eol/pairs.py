@@ -340,8 +340,9 @@ def entries_device(buffers: list[tuple[int, wp.array, wp.array, int]], pairs: li
                                            scratch.node_keys, scratch.node_values, scratch.node_mass,
                                            scratch.row_keys, scratch.row_values], device=d)
         offset += n
-    scratch.row_sums.launch(scratch.row_keys, scratch.row_values, None, total)
-    scratch.node_sums.launch(scratch.node_keys, scratch.node_values, scratch.node_mass, 16 * total)
+    scratch.row_sums.launch(scratch.row_keys, scratch.row_values, None, total, key_bound=n_rows)
+    scratch.node_sums.launch(scratch.node_keys, scratch.node_values, scratch.node_mass, 16 * total,
+                             key_bound=len(bodies) * n_rows * n_nodes)
     (row_keys, row_values, _), (node_keys, node_values, node_mass) = KeySums.fetch_all([scratch.row_sums,
                                                                                         scratch.node_sums])
     return Entries(row_keys=row_keys, row_values=row_values, node_keys=node_keys, node_values=node_values,
