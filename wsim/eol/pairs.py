@@ -514,36 +514,39 @@ class CoupleParts:
 
 
 def _couple_regions(rows: PairRows) -> tuple[np.ndarray, dict[int, CoupleParts]]:
-    """The couples' regions, made once a step: per pair, the nodes its rows touch in each body
-    about each part's mass centroid, and the inverse (R, 3, 3) of each pair's summed inertia;
-    per body its ``CoupleParts``."""
-    inertia, entries = [], {}
-    for reg, (a, b) in enumerate(sorted({(int(p), int(q)) for p, q in rows.bodies})):
-        on = (rows.bodies[:, 0] == a) & (rows.bodies[:, 1] == b)
-        total = np.zeros((3, 3))
-        for k in (a, b):
-            side = rows.sides[k]
-            mine = on[side.rows]  # the pair's rows among this side's (all of them for two bodies)
-            G = side.G if mine.all() else side.G[np.flatnonzero(mine)]
-            used = np.flatnonzero(np.bincount(G.indices[G.data != 0.0], minlength=G.shape[1]) > 0)
-            m = 1.0 / side.inv_mass[used]
-            x = side.x[used]
-            r = x - (m @ x) / m.sum()
-            total += (m * (r * r).sum(axis=1)).sum() * np.eye(3) - (r * m[:, None]).T @ r
-            entries.setdefault(k, []).append((reg, used, m, x, r))
-        inertia.append(total)
+    """The couples' regions, made once a step: per pair (sorted), the nodes its rows touch in each
+    body about each part's mass centroid, and the inverse (R, 3, 3) of each pair's summed inertia;
+    per body its ``CoupleParts``, found for all its pairs at once (entries in region, then node
+    order)."""
+    pair_keys = np.unique(rows.bodies[:, 0] * (int(rows.bodies.max()) + 1) + rows.bodies[:, 1])
+    region_of_row = np.searchsorted(pair_keys, rows.bodies[:, 0] * (int(rows.bodies.max()) + 1) + rows.bodies[:, 1])
+    R = len(pair_keys)
+    inertia = np.zeros((R, 3, 3))
     parts = {}
-    for k, got in entries.items():
-        nodes = np.concatenate([g[1] for g in got])
-        region = np.concatenate([np.full(len(g[1]), g[0]) for g in got])
+    eye = np.eye(3)
+    for k in sorted(rows.sides):
+        side = rows.sides[k]
+        G, n = side.G, len(side.nodes)
+        nz = G.data != 0.0
+        row = np.repeat(np.arange(G.shape[0]), np.diff(G.indptr))[nz]
+        key = np.unique(region_of_row[side.rows[row]] * n + G.indices[nz])
+        region, nodes = key // n, key % n
+        m = 1.0 / side.inv_mass[nodes]
+        x = side.x[nodes]
+        msum = np.bincount(region, m, minlength=R)
+        centroid = np.stack([np.bincount(region, m * x[:, d], minlength=R) for d in range(3)], axis=1)
+        centroid /= np.where(msum > 0.0, msum, 1.0)[:, None]
+        r = x - centroid[region]
+        # sum over the part of m ((r . r) I - r r^T), per region
+        outer = m[:, None, None] * ((r * r).sum(axis=1)[:, None, None] * eye - r[:, :, None] * r[:, None, :])
+        inertia += np.stack([np.bincount(region, outer[:, a, b], minlength=R) for a in range(3) for b in range(3)],
+                            axis=1).reshape(R, 3, 3)
         e = np.arange(len(nodes))
-        onehot = np.zeros((len(inertia), len(nodes)))
+        onehot = np.zeros((R, len(nodes)))
         onehot[region, e] = 1.0
-        spread = sp.csr_matrix((np.ones(len(nodes)), (nodes, e)), shape=(len(rows.sides[k].nodes), len(nodes)))
-        parts[k] = CoupleParts(nodes=nodes, region=region, onehot=onehot, spread=spread,
-                               m=np.concatenate([g[2] for g in got]), x=np.concatenate([g[3] for g in got]),
-                               r=np.concatenate([g[4] for g in got]))
-    return np.linalg.pinv(np.array(inertia), rcond=1e-12), parts
+        spread = sp.csr_matrix((np.ones(len(nodes)), (nodes, e)), shape=(n, len(nodes)))
+        parts[k] = CoupleParts(nodes=nodes, region=region, onehot=onehot, spread=spread, m=m, x=x, r=r)
+    return np.linalg.pinv(inertia, rcond=1e-12), parts
 
 
 def slip_change(rows: PairRows, changes: dict[int, np.ndarray]) -> np.ndarray:
