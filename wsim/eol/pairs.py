@@ -486,7 +486,8 @@ def moment_couples(rows: PairRows, changes: dict[int, np.ndarray]) -> dict[int, 
     tau = np.zeros(lead + (len(inverse), 3))
     for k, p in parts.items():
         dv = changes[k][..., p.nodes, :] @ rows.sides[k].Q.T  # world
-        tau += p.onehot @ (p.m[:, None] * np.cross(p.x, dv))
+        moment = np.moveaxis(p.m[:, None] * np.cross(p.x, dv), -2, 0)  # (E, ..., 3)
+        tau += np.moveaxis((p.onehot @ moment.reshape(len(p.m), -1)).reshape((p.onehot.shape[0],) + lead + (3,)), 0, -2)
     omega = -np.einsum("rij,...rj->...ri", inverse, tau)
     out = {}
     for k, p in parts.items():
@@ -501,12 +502,12 @@ def moment_couples(rows: PairRows, changes: dict[int, np.ndarray]) -> dict[int, 
 class CoupleParts:
     """One body's parts of the couples' regions, concatenated (E entries): its touched ``nodes``
     (indices into its side's nodes), ``region`` of each, ``onehot`` (R x E) and ``spread``
-    (n x E, sparse) that sum entries per region and per node, mass ``m``, world position ``x`` and
+    (n x E), sparse, that sum entries per region and per node, mass ``m``, world position ``x`` and
     ``r`` = x - the part's mass centroid."""
 
     nodes: np.ndarray
     region: np.ndarray
-    onehot: np.ndarray
+    onehot: sp.csr_matrix
     spread: sp.csr_matrix
     m: np.ndarray
     x: np.ndarray
@@ -541,10 +542,9 @@ def _couple_regions(rows: PairRows) -> tuple[np.ndarray, dict[int, CoupleParts]]
         outer = m[:, None, None] * ((r * r).sum(axis=1)[:, None, None] * eye - r[:, :, None] * r[:, None, :])
         inertia += np.stack([np.bincount(region, outer[:, a, b], minlength=R) for a in range(3) for b in range(3)],
                             axis=1).reshape(R, 3, 3)
-        e = np.arange(len(nodes))
-        onehot = np.zeros((R, len(nodes)))
-        onehot[region, e] = 1.0
-        spread = sp.csr_matrix((np.ones(len(nodes)), (nodes, e)), shape=(n, len(nodes)))
+        e, ones = np.arange(len(nodes)), np.ones(len(nodes))
+        onehot = sp.csr_matrix((ones, (region, e)), shape=(R, len(nodes)))
+        spread = sp.csr_matrix((ones, (nodes, e)), shape=(n, len(nodes)))
         parts[k] = CoupleParts(nodes=nodes, region=region, onehot=onehot, spread=spread, m=m, x=x, r=r)
     return np.linalg.pinv(inertia, rcond=1e-12), parts
 
