@@ -265,10 +265,12 @@ def rows_from_entries(entries: Entries, pairs: list[tuple[int, int, float]], bod
         ms, n = len(side_rows), len(touched)
         inv_mass = np.zeros(n)
         inv_mass[local] = 1.0 / mass[lo:hi]
-        ptr = np.concatenate([[0], np.cumsum(np.bincount(rows_, minlength=m)[side_rows])])
-        J = sp.csr_matrix((vals[lo:hi, :3].ravel(), (3 * local[:, None] + np.arange(3)).ravel(), 3 * ptr),
-                          shape=(ms, 3 * n))
-        G = sp.csr_matrix((vals[lo:hi, 3] * per_area[rows_], local, ptr), shape=(ms, n))
+        # int32 indices: scipy checks (and would otherwise convert) int64 ones on every construction
+        ptr = np.concatenate([[0], np.cumsum(np.bincount(rows_, minlength=m)[side_rows])]).astype(np.int32)
+        local32 = local.astype(np.int32)
+        J = sp.csr_matrix((vals[lo:hi, :3].ravel(), (3 * local32[:, None] + np.arange(3, dtype=np.int32)).ravel(),
+                           3 * ptr), shape=(ms, 3 * n))
+        G = sp.csr_matrix((vals[lo:hi, 3] * per_area[rows_], local32, ptr), shape=(ms, n))
         out.sides[int(b)] = Side(rows=side_rows, nodes=touched, inv_mass=inv_mass, x=info.node_positions(touched),
                                  J=J, G=G, Q=info.Q, lut=lut)
     return out
@@ -389,8 +391,10 @@ def joint_system(own: list[ContactSystem | None], own_at: list[np.ndarray | None
             blocks.append((n_own + side.rows, sl, C.T))
     n = n_own + m
     if n > SPARSE_ROWS:
-        coo = [(np.repeat(r, len(c))[B.ravel() != 0.0], np.tile(c, len(r))[B.ravel() != 0.0], B.ravel()[B.ravel() != 0.0])
-               for r, c, B in blocks]
+        coo = []
+        for r, c, B in blocks:
+            i, j = np.nonzero(B)
+            coo.append((r[i], c[j], B[i, j]))
         S = sp.csr_matrix((np.concatenate([v for _, _, v in coo]),
                            (np.concatenate([i for i, _, _ in coo]), np.concatenate([j for _, j, _ in coo]))), shape=(n, n))
     else:
