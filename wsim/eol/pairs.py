@@ -51,7 +51,7 @@ from wsim.segments import KeySums
 #: (< 2**31): PAIR_ID (1 + B's key) + A's collision cell
 PAIR_ID = 1 << 32
 FRICTION_SWEEPS = 30
-SPARSE_ROWS = 400  # a joint QP with more rows is factorized sparse (``joint_system``)
+SPARSE_ROWS = 400  # past this many rows the joint QP (``joint_system``) and the friction's K (``row_friction``) are sparse
 FRICTION_TOLERANCE = 1e-6  # the sweeps stop once no row's impulse changes by more than this of the largest bound
 
 
@@ -374,33 +374,38 @@ def joint_system(own: list[ContactSystem | None], own_at: list[np.ndarray | None
     sizes = [0 if s is None else s.m for s in own]
     start = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
     n_own, m = int(start[-1]), rows.m
-    blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (row ids, column ids, dense block)
+    n = n_own + m
+    sparse = n > SPARSE_ROWS
+    coo: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (row ids, column ids, values) when sparse
+    S = None if sparse else np.zeros((n, n))
+
+    def add(r: np.ndarray, c: np.ndarray, B: np.ndarray | sp.spmatrix) -> None:
+        if not sparse:
+            S[np.ix_(r, c)] += B.toarray() if sp.issparse(B) else B
+        elif sp.issparse(B):
+            B = B.tocoo()
+            coo.append((r[B.row], c[B.col], B.data))
+        else:
+            i, j = np.nonzero(B)
+            coo.append((r[i], c[j], B[i, j]))
+
     for k, b in enumerate(bodies):
         side = rows.sides.get(b)
         JMinv = None if side is None else side.JMinv()
         if JMinv is not None:
             r = n_own + side.rows
-            blocks.append((r, r, (JMinv @ side.J.T).toarray()))
+            add(r, r, JMinv @ side.J.T)
         if own[k] is None:
             continue
         sl = np.arange(start[k], start[k + 1])
-        blocks.append((sl, sl, own[k].S))
+        add(sl, sl, own[k].S)
         if JMinv is not None and own_at[k] is not None:
             C = (JMinv @ own_at[k].T).T
-            blocks.append((sl, n_own + side.rows, C))
-            blocks.append((n_own + side.rows, sl, C.T))
-    n = n_own + m
-    if n > SPARSE_ROWS:
-        coo = []
-        for r, c, B in blocks:
-            i, j = np.nonzero(B)
-            coo.append((r[i], c[j], B[i, j]))
+            add(sl, n_own + side.rows, C)
+            add(n_own + side.rows, sl, C.T)
+    if sparse:
         S = sp.csr_matrix((np.concatenate([v for _, _, v in coo]),
                            (np.concatenate([i for i, _, _ in coo]), np.concatenate([j for _, j, _ in coo]))), shape=(n, n))
-    else:
-        S = np.zeros((n, n))
-        for r, c, B in blocks:
-            S[np.ix_(r, c)] += B
     parts = [s for s in own if s is not None]
 
     def cat(name: str, pair: np.ndarray) -> np.ndarray:
@@ -439,12 +444,22 @@ def row_friction(rows: PairRows, lam: np.ndarray, slip: np.ndarray) -> np.ndarra
         return P
     n = rows.D / np.maximum(np.linalg.norm(rows.D, axis=1), 1e-300)[:, None]
     if "K" not in rows._cache:
-        K = np.zeros((m, m))
+        blocks = []
         for s in rows.sides.values():
             GMinv = s.G.copy()  # G M^-1: each entry over its node's mass (``multiply`` goes through COO)
             GMinv.data *= s.inv_mass[GMinv.indices]
-            K[np.ix_(s.rows, s.rows)] += (GMinv @ s.G.T).toarray()
-        rows._cache["K"] = (K, np.diag(K).copy(), 1.0 / np.maximum(np.abs(K).sum(axis=1), 1e-300))
+            blocks.append((s.rows, (GMinv @ s.G.T).tocoo()))
+        if m > SPARSE_ROWS:  # a row's slip shares nodes with its neighbours' only: K @ P sparse
+            K = sp.csr_matrix((np.concatenate([B.data for _, B in blocks]),
+                               (np.concatenate([r[B.row] for r, B in blocks]),
+                                np.concatenate([r[B.col] for r, B in blocks]))), shape=(m, m))
+            diag, total = K.diagonal(), np.asarray(abs(K).sum(axis=1)).ravel()
+        else:
+            K = np.zeros((m, m))
+            for r, B in blocks:
+                K[np.ix_(r, r)] += B.toarray()
+            diag, total = np.diag(K).copy(), np.abs(K).sum(axis=1)
+        rows._cache["K"] = (K, diag, 1.0 / np.maximum(total, 1e-300))
     K, diag, step = rows._cache["K"]
 
     tol = FRICTION_TOLERANCE * float(bound.max())
