@@ -533,6 +533,13 @@ class CoupleParts:
     r: np.ndarray
 
 
+def _region_sums(region: np.ndarray, values: np.ndarray, R: int) -> np.ndarray:
+    """(R, q) sums of values (E, q) per region (E,): one bincount over region-major bins."""
+    q = values.shape[1]
+    bins = (region[:, None] * q + np.arange(q)).ravel()
+    return np.bincount(bins, values.ravel(), minlength=R * q).reshape(R, q)
+
+
 def _couple_regions(rows: PairRows) -> tuple[np.ndarray, dict[int, CoupleParts]]:
     """The couples' regions, made once a step: per pair (sorted), the nodes its rows touch in each
     body about each part's mass centroid, and the inverse (R, 3, 3) of each pair's summed inertia;
@@ -554,13 +561,11 @@ def _couple_regions(rows: PairRows) -> tuple[np.ndarray, dict[int, CoupleParts]]
         m = 1.0 / side.inv_mass[nodes]
         x = side.x[nodes]
         msum = np.bincount(region, m, minlength=R)
-        centroid = np.stack([np.bincount(region, m * x[:, d], minlength=R) for d in range(3)], axis=1)
-        centroid /= np.where(msum > 0.0, msum, 1.0)[:, None]
+        centroid = _region_sums(region, m[:, None] * x, R) / np.where(msum > 0.0, msum, 1.0)[:, None]
         r = x - centroid[region]
         # sum over the part of m ((r . r) I - r r^T), per region
         outer = m[:, None, None] * ((r * r).sum(axis=1)[:, None, None] * eye - r[:, :, None] * r[:, None, :])
-        inertia += np.stack([np.bincount(region, outer[:, a, b], minlength=R) for a in range(3) for b in range(3)],
-                            axis=1).reshape(R, 3, 3)
+        inertia += _region_sums(region, outer.reshape(-1, 9), R).reshape(R, 3, 3)
         e, ones = np.arange(len(nodes)), np.ones(len(nodes))
         onehot = sp.csr_matrix((ones, (region, e)), shape=(R, len(nodes)))
         spread = sp.csr_matrix((ones, (nodes, e)), shape=(n, len(nodes)))
