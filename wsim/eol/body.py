@@ -1348,35 +1348,42 @@ class EolBody(VertexImpulses, Body):
             self._launch(kc.world_surface, n, [self._surface, self._world_points])
             self._world_mesh.refit()
 
-    def _pair_samples(self, others: list[tuple[EolBody, int, int, float]]) -> tuple[wp.array, wp.array, int]:
-        """Records of this body's samples inside other EoL bodies (``kernels.eol_contact.pair_samples``):
-        (other body, whether this body is the pair's A, pair index, query reach [m]) each; the
-        buffer grows when a step has more records than it holds. Returns the device arrays
-        (rec_i, rec_f) and the number of records in them."""
+    def _pair_samples(self, others: list[tuple[EolBody, int, int, float]]) -> None:
+        """Launch the records of this body's samples inside other EoL bodies
+        (``kernels.eol_contact.pair_samples``): (other body, whether this body is the pair's A,
+        pair index, query reach [m]) each, counted in ``_pair_count``; ``_pair_records`` takes
+        the count (read back for every body of a group at once) and relaunches into a larger
+        buffer when it overflowed."""
         d = self._device
         P = self._surface.sample_face.shape[0]
         if getattr(self, "_pair_count", None) is None:
             self._pair_count = wp.zeros(1, dtype=wp.int32, device=d)
             self._pair_capacity = 0
-        while True:
-            if self._pair_capacity < max(64, P // 8):
-                self._pair_capacity = max(64, P // 8)
-            if getattr(self, "_pair_rec_i", None) is None or self._pair_rec_i.shape[0] < self._pair_capacity:
-                self._pair_rec_i = wp.zeros((self._pair_capacity, 5), dtype=wp.int32, device=d)
-                self._pair_rec_f = wp.zeros((self._pair_capacity, kc.PAIR_RECORD), dtype=wp.float64, device=d)
-            self._pair_count.zero_()
-            for other, own_is_a, pair, reach in others:
-                F = other.state.F
-                inverse = F.T if other.lagrangian == "rigid" else np.linalg.inv(F)
-                self._launch(kc.pair_samples, P,
-                             [self._surface, other._surface, _mat(inverse), other._world_mesh.id, other._world_closed,
-                              float(reach),
-                              int(own_is_a), int(pair), self._w, self._a, other._w, other._a, self._pair_count,
-                              self._pair_rec_i, self._pair_rec_f])
-            n = int(self._pair_count.numpy()[0])
-            if n <= self._pair_rec_i.shape[0]:
-                return self._pair_rec_i, self._pair_rec_f, n
+        if self._pair_capacity < max(64, P // 8):
+            self._pair_capacity = max(64, P // 8)
+        if getattr(self, "_pair_rec_i", None) is None or self._pair_rec_i.shape[0] < self._pair_capacity:
+            self._pair_rec_i = wp.zeros((self._pair_capacity, 5), dtype=wp.int32, device=d)
+            self._pair_rec_f = wp.zeros((self._pair_capacity, kc.PAIR_RECORD), dtype=wp.float64, device=d)
+        self._pair_count.zero_()
+        self._pair_others = others
+        for other, own_is_a, pair, reach in others:
+            F = other.state.F
+            inverse = F.T if other.lagrangian == "rigid" else np.linalg.inv(F)
+            self._launch(kc.pair_samples, P,
+                         [self._surface, other._surface, _mat(inverse), other._world_mesh.id, other._world_closed,
+                          float(reach),
+                          int(own_is_a), int(pair), self._w, self._a, other._w, other._a, self._pair_count,
+                          self._pair_rec_i, self._pair_rec_f])
+
+    def _pair_records(self, n: int) -> tuple[wp.array, wp.array, int]:
+        """The device arrays (rec_i, rec_f) of ``_pair_samples``' launches and the number of
+        records in them, ``n`` (their count as read back); a buffer that overflowed grows and the
+        launches run again."""
+        while n > self._pair_rec_i.shape[0]:
             self._pair_capacity = 2 * n
+            self._pair_samples(self._pair_others)
+            n = int(self._pair_count.numpy()[0])
+        return self._pair_rec_i, self._pair_rec_f, n
 
     def _friction(self, m: int, dt: float) -> None:
         """Coulomb friction against each moving surface at the nodes its rows pushed (the m rows'
@@ -1582,10 +1589,21 @@ def _rows_between(bodies: Sequence[EolBody], keys: Sequence[int], works: list[_S
     for p, (i, j, _) in enumerate(found):
         launches.setdefault(i, []).append((j, 1, p))
         launches.setdefault(j, []).append((i, 0, p))
-    buffers = []
     for k, todo in launches.items():
-        ri, rf, n = bodies[k]._pair_samples([(bodies[o], a, p, float(np.linalg.norm(boxes[o][1] - boxes[o][0])))
-                                             for o, a, p in todo])
+        bodies[k]._pair_samples([(bodies[o], a, p, float(np.linalg.norm(boxes[o][1] - boxes[o][0])))
+                                 for o, a, p in todo])
+    # every body's record count in one synchronization (copies into one page-locked buffer), so
+    # that the bodies' launches queue up behind each other instead of each waiting for its own
+    lead = bodies[0]
+    if getattr(lead, "_pair_counts_host", None) is None or lead._pair_counts_host.shape[0] < len(bodies):
+        lead._pair_counts_host = wp.zeros(len(bodies), dtype=wp.int32, device="cpu", pinned=d.is_cuda)
+    for k in launches:
+        wp.copy(lead._pair_counts_host, bodies[k]._pair_count, dest_offset=k, count=1)
+    wp.synchronize_device(d)
+    counts = lead._pair_counts_host.numpy().copy()
+    buffers = []
+    for k in launches:
+        ri, rf, n = bodies[k]._pair_records(int(counts[k]))
         if n:
             buffers.append((k, ri, rf, n))
     if not buffers:
