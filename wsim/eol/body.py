@@ -1573,9 +1573,11 @@ def _rows_between(bodies: Sequence[EolBody], keys: Sequence[int], works: list[_S
     # a sample inside the other's surface lies in both surfaces' bounding boxes: pairs whose grid
     # boxes (padded, so larger) overlap but whose surfaces' boxes do not get no sample launches
     # (in a pile most neighbours' grid boxes overlap; each pair costs two launches and read-backs)
-    d = bodies[0]._device
-    init = np.tile(np.array([np.inf] * 3 + [-np.inf] * 3, dtype=np.float32), (len(bodies), 1))
-    bounds = wp.array(init, dtype=wp.float32, device=d)
+    lead, d = bodies[0], bodies[0]._device  # the lead body keeps the group's scratch
+    if getattr(lead, "_pair_scratch", None) is None or lead._pair_scratch.device != d:
+        lead._pair_scratch = pairs.PairScratch(d)
+    scratch = lead._pair_scratch
+    bounds, counts_host = scratch.per_body(len(bodies))
     for k in near:
         pts = bodies[k]._world_points
         wp.launch(kc.surface_bounds, pts.shape[0], [pts, k, bounds], device=d)
@@ -1594,13 +1596,10 @@ def _rows_between(bodies: Sequence[EolBody], keys: Sequence[int], works: list[_S
                                  for o, a, p in todo])
     # every body's record count in one synchronization (copies into one page-locked buffer), so
     # that the bodies' launches queue up behind each other instead of each waiting for its own
-    lead = bodies[0]
-    if getattr(lead, "_pair_counts_host", None) is None or lead._pair_counts_host.shape[0] < len(bodies):
-        lead._pair_counts_host = wp.zeros(len(bodies), dtype=wp.int32, device="cpu", pinned=d.is_cuda)
     for k in launches:
-        wp.copy(lead._pair_counts_host, bodies[k]._pair_count, dest_offset=k, count=1)
+        wp.copy(counts_host, bodies[k]._pair_count, dest_offset=k, count=1)
     wp.synchronize_device(d)
-    counts = lead._pair_counts_host.numpy().copy()
+    counts = counts_host.numpy().copy()
     buffers = []
     for k in launches:
         ri, rf, n = bodies[k]._pair_records(int(counts[k]))
@@ -1613,10 +1612,7 @@ def _rows_between(bodies: Sequence[EolBody], keys: Sequence[int], works: list[_S
                             key=int(key), ccells=tuple(int(c) for c in b._ccells)) for b, key in zip(bodies, keys)]
     # the records are summed per row and per (body, row, node) on the device: only the sums reach
     # the host (the records of two 32-cell spheres in contact were 2 MB and ~10 ms of numpy a step)
-    lead = bodies[0]
-    if getattr(lead, "_pair_scratch", None) is None or lead._pair_scratch.device != lead._device:
-        lead._pair_scratch = pairs.PairScratch(lead._device)
-    rows = pairs.rows_from_entries(pairs.entries_device(buffers, found, infos, lead._pair_scratch), found, infos)
+    rows = pairs.rows_from_entries(pairs.entries_device(buffers, found, infos, scratch), found, infos)
     for k, side in rows.sides.items():  # each body's own rows at the nodes the rows between bodies touch
         w, b = works[k], bodies[k]
         if w.m:

@@ -23,7 +23,7 @@ per key there (``entries_device``: a sort, one thread per key, ``wsim.segments``
 one row of sums per row and per (body, row, node), and makes each body's sparse matrices over the
 rows and nodes it touches from them (``rows_from_entries``; the records of two 32-cell spheres in
 contact were ~5,000 of 53 numbers, and their numpy assembly ~11 ms a step on an H100's host).
-``entries_host`` is the same sum in numpy, the reference. The joint QP's dual matrix is
+``entries_host`` is the same sum in numpy, the tests' reference. The joint QP's dual matrix is
 S = sum_bodies J_b M_b^-1 J_b^T over all rows of the touching bodies: each body's own rows keep
 the block its device assembly made, the rows between bodies add theirs and the cross terms with
 the own rows at the nodes both touch.
@@ -276,18 +276,6 @@ def rows_from_entries(entries: Entries, pairs: list[tuple[int, int, float]], bod
     return out
 
 
-def assemble(records: list[tuple[int, np.ndarray, np.ndarray]], pairs: list[tuple[int, int, float]],
-             bodies: list[BodyInfo]) -> PairRows | None:
-    """The rows between bodies from the samples' records on the host: (own body's group index,
-    rec_i (N, 5), rec_f (N, ``PAIR_RECORD``)) per body (``kernels.eol_contact.pair_samples``);
-    ``pairs`` (A, B, friction) by pair index. None when no sample is inside another body. The
-    reference for ``EolBody``'s device path (``entries_device``)."""
-    records = [r for r in records if len(r[1])]
-    if not records:
-        return None
-    return rows_from_entries(entries_host(records, pairs, bodies, key_strides(pairs, bodies)), pairs, bodies)
-
-
 class PairScratch:
     """Device arrays of ``entries_device`` (grown on demand), its two ``KeySums`` and the small
     per-body tables it last uploaded (uploaded again only when they change)."""
@@ -298,6 +286,18 @@ class PairScratch:
         self.node_sums = KeySums(device)
         self._records = 0
         self._tables: dict[str, tuple[np.ndarray, wp.array]] = {}
+        self._bodies = 0
+
+    def per_body(self, bodies: int) -> tuple[wp.array, wp.array]:
+        """The group's surface bounds (bodies x 6, float32: min then max, reset to +inf, -inf)
+        and a host buffer for the bodies' record counts (page-locked on a GPU)."""
+        if bodies > self._bodies:
+            self.bounds = wp.empty((bodies, 6), dtype=wp.float32, device=self.device)
+            self.counts = wp.zeros(bodies, dtype=wp.int32, device="cpu", pinned=self.device.is_cuda)
+            self._bodies = bodies
+        init = np.tile(np.array([np.inf] * 3 + [-np.inf] * 3, dtype=np.float32), (self._bodies, 1))
+        self.bounds.assign(init)
+        return self.bounds, self.counts
 
     def ensure(self, records: int) -> None:
         if records <= self._records:
