@@ -13,6 +13,8 @@ import pytest
 import trimesh
 from scipy.optimize import curve_fit
 
+import warp as wp
+
 import wsim
 from wsim.bem import build_operators
 from wsim.bem.analytic import breathing_frequency, breathing_xi, static_radial_displacement
@@ -348,10 +350,12 @@ def test_bad_traction_load_names_the_body(ops_cache):
         body.add_traction("not callable")
 
 
-def test_divergence_stops_with_the_body_and_quantity_named(tmp_path, ops_cache):
+@pytest.mark.parametrize("matvec", ["blas", "warp"])  # the host path, and the step kept on the device
+def test_divergence_stops_with_the_body_and_quantity_named(tmp_path, ops_cache, matvec):
     ops = ops_cache(1, 10)
     world = wsim.World(fps=50, device="cpu", gravity=(0.0, 0.0, 0.0))
-    body = world.add(wsim.BemBody(sphere(1), MAT, ops.dt, operators=ops, name="ball", divergence_limit=1e-5))
+    body = world.add(wsim.BemBody(sphere(1), MAT, ops.dt, operators=ops, name="ball", divergence_limit=1e-5,
+                                  matvec=matvec))
     n = body.rest_normals
     body.add_traction(lambda t: -1000.0 * n * (t > 0.03))  # |u| ~ 4e-4 m > limit, from the 2nd frame on
     with pytest.raises(wsim.SimulationDiverged, match="ball.*displacement") as err:
@@ -376,6 +380,65 @@ def test_an_overflowing_step_is_a_named_divergence_not_a_crash(ops_cache):
     assert body.failed
     with pytest.raises(wsim.SimulationDiverged, match="ball.*non-finite displacement"):
         body.check_finite(1, body.time)
+
+
+@pytest.mark.parametrize("device_step", [True, False])
+def test_a_non_finite_history_stops_the_body_at_its_step(ops_cache, device_step):
+    """Non-finite values anywhere in the step (here the displacement ring) stop the body at the step
+    that produced them, with the quantity named, on the device path (its per-step log, read after
+    the batch) as on the host path."""
+    ops = ops_cache(1, 10)
+    world, body = make_body(ops, sphere(1), name="ball", matvec="warp", device_step=device_step)
+    body.advance(0.0, 3 * ops.dt)
+    body.state.U.fill_(float("inf"))
+    body.advance(body.time, body.time + 5 * ops.dt)
+    assert body.failed
+    with pytest.raises(wsim.SimulationDiverged, match="ball.*non-finite displacement") as err:
+        body.check_finite(1, body.time)
+    assert "step 4 " in str(err.value)
+
+
+def test_device_step_matches_the_host_path(device, ops_cache):
+    """A free step kept on the device (``wsim.bem.device_step``: correction and frame update in one
+    float64 kernel, CUDA graphs, one read-back per advance) follows the host path's numpy correction
+    to round-off: float64 storage, a spinning body under gravity and a pulsing one-sided load, through
+    one-step batches, batches longer than the device's log (LOG_ROWS steps) and the frame's
+    re-orthonormalization (every 100 steps). A load that reads the frame mid-batch sees that step's."""
+    from wsim.bem.device_step import LOG_ROWS
+
+    ops = ops_cache(1, 10, "float64")
+    runs = []
+    for on_device in (True, False):
+        world = wsim.World(fps=1.0 / ops.dt, device=device, gravity=(0.0, -9.81, 0.0))
+        body = world.add(wsim.BemBody(sphere(1), MAT, ops.dt, operators=ops, matvec="warp", device_step=on_device,
+                                      angular_velocity=(0.0, 3.0, 1.0), velocity=(0.2, 0.0, 0.0)))
+        n, x = body.rest_normals, body.rest_vertices
+        seen = []
+
+        def load(t, body=body, n=n, x=x, seen=seen):
+            if 100 * ops.dt < t < 103.5 * ops.dt:
+                seen.append(body.frame.T.copy())
+            return -400.0 * n * (x[:, :1] > 0) * (1.0 + np.sin(300.0 * t))
+
+        body.add_traction(load)
+        pts = []
+        for _ in range(5):
+            body.step()
+            pts.append(body.points())
+        body.advance(body.time, body.time + (LOG_ROWS + 40) * ops.dt)
+        pts.append(body.points())
+        f = body.frame
+        runs.append((np.array(pts), np.array(seen), np.concatenate([f.velocity, f.omega, f.L]), body.displacement()))
+        if on_device:
+            assert body.steps == LOG_ROWS + 45
+            assert bool(body._resident.graphs) == wp.get_device(device).is_cuda  # replayed as graphs on CUDA
+    (pa, sa, fa, ua), (pb, sb, fb, ub) = runs
+    scale = np.max(np.abs(pb - pb[:1]))
+    assert scale > 0.1 and np.max(np.abs(ub)) > 1e-6  # it moved and deformed
+    assert np.max(np.abs(pa - pb)) < 1e-11 * scale
+    assert len(sa) == 3 and np.max(np.abs(sa - sb)) < 1e-11 * scale
+    assert np.max(np.abs(fa - fb)) < 1e-11 * np.max(np.abs(fb))
+    assert np.max(np.abs(ua - ub)) < 1e-9 * np.max(np.abs(ub))
 
 
 def test_device_trajectory_matches_cpu_blas(device, ops_cache):

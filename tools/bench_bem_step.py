@@ -6,10 +6,13 @@
 Per case: operators built (not cached, not timed here: see bench_bem_precompute.py), then a body
 spinning and pushed by a traction pulse is stepped
 
-* with ``profile=True`` (device synchronized after each stage): seconds per step by stage
-  (loads, history, solve = the paper's UNCNST; correction + frame = ERRCR);
-* without profiling: seconds per whole step, and per unconstrained solve alone
-  (``BemBody.unconstrained_solve``: history, loads, Eq. 12 and the copy of u_n to the host);
+* with ``profile=True`` (device synchronized after each stage; the host path): seconds per step
+  by stage (loads, history, solve = the paper's UNCNST; correction + frame = ERRCR);
+* without profiling: seconds per whole step (``step()``: kept on the device, ``wsim.bem.device_step``,
+  with one read-back per step), per step of one ``advance`` over all the steps (one read-back, as a
+  World frame has), per step on the host path (``device_step=False``), and per unconstrained solve
+  alone (``BemBody.unconstrained_solve``: history, loads, Eq. 12 and the copy of u_n to the host);
+  and the device path's end state against the host path's after the same steps from the start;
 
 and the history matvec alone is timed and compared, in the same run, with the same product through
 torch (``torch.mv`` over the 2 n_max matrices, on the GPU, when torch is importable) and numpy BLAS
@@ -109,12 +112,36 @@ def run_case(name: str, device: str | None, precision: str, mesh_path: str | Non
             body.step()
         stage = {k: v / n_prof for k, v in body.timings.items()}
         body.profile = False
+        for _ in range(2 * ops.n_max + 1):  # the device path: compile, then capture each ring slot's graph
+            body.step()
         sync()
         t1 = time.perf_counter()
         for _ in range(steps):
             body.step()
         sync()
         per_step = (time.perf_counter() - t1) / steps
+        paths = {}
+        if ratio is None and backend == "warp":  # the step kept on the device, one read-back per advance, and the host path
+            t1 = time.perf_counter()
+            body.advance(body.time, body.time + steps * dt)
+            sync()
+            paths["seconds_per_step_one_advance"] = (time.perf_counter() - t1) / steps
+            body.device_step = False
+            t1 = time.perf_counter()
+            for _ in range(steps):
+                body.step()
+            sync()
+            paths["seconds_per_step_host_path"] = (time.perf_counter() - t1) / steps
+            body.device_step = True
+            ends = []
+            for on_device in (True, False):  # the same run from the start both ways: what the device path changes
+                fresh = make_body(backend, None, False)
+                fresh.device_step = on_device
+                fresh.advance(0.0, steps * dt)
+                ends.append((fresh.points(), fresh.frame.velocity.copy()))
+            paths["device_vs_host_path_points_m"] = float(np.abs(ends[0][0] - ends[1][0]).max())
+            paths["device_vs_host_path_velocity_m_s"] = float(np.abs(ends[0][1] - ends[1][1]).max())
+            paths["compared_steps"] = steps
         uncnst = _time(body.unconstrained_solve, 50, sync)  # UNCNST alone, no per-stage syncs
         so = body._so
         h = so.vectors()
@@ -148,6 +175,7 @@ def run_case(name: str, device: str | None, precision: str, mesh_path: str | Non
             "history_with_ring_update_graph_seconds": graph,
             "step_matrix_bytes": int(so.matrix_bytes),
             "max_displacement": float(np.max(np.abs(body.displacement()))),
+            **paths,
         }
         if ratio is not None:
             dense = results["warp"]

@@ -12,7 +12,8 @@ Per step n (length dt, fixed by the operators):
 5. frame update (Eq. 11, ``wsim.rigid``) with a_n = g' + a_ext + da, alpha_n = alpha_ext + dalpha.
 
 World-space surface points are R (x + u) + T. Steps 1 and 3 run on the body's Warp device
-(``wsim.bem.stepper``); 2, 4 and 5 are O(N) host work in float64.
+(``wsim.bem.stepper``); 2, 4 and 5 are O(N) host work in float64, except on a free step with the
+Warp backend (``device_step``), where 4 and 5 run on the device too (``wsim.bem.device_step``).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from wsim import mesh as wmesh
 from wsim import constraints as wc
 from wsim.contact import nearest_faces, points_inside
 from wsim.bem import stepper
+from wsim.bem.device_step import LOG_ROWS, ResidentStep, set_frame
 from wsim.bem.constraints import (PointResponse, add_point_displacement, frame_terms, point_displacement,
                                   response_matrix)
 from wsim.rigid import RigidFrame, rotation_vector
@@ -142,7 +144,14 @@ class BemBody(VertexImpulses, Body):
         cache: operator cache (True, False or an ``OperatorCache``).
         progress: progress bar while the operators are built (None: when stderr is a terminal;
             ``WSIM_PROGRESS=0``, set by ``wsim run --no-progress``, hides it; ``wsim.progress``).
-        profile: synchronize the device after each stage so ``timings`` splits GPU time by stage.
+        profile: synchronize the device after each stage so ``timings`` splits GPU time by stage
+            (such steps take the host path below).
+        device_step: keep a free step on the device (``wsim.bem.device_step``): with dense Warp
+            operators, ``frame_update`` and ``error_correction`` on and no constraint, the error
+            correction and frame update run as one kernel after the passes, on CUDA each step is
+            replayed as a CUDA graph, and the host reads the state back once per ``advance`` (a
+            World frame or coupling interval; reading ``frame`` or ``points()`` in a load reads it
+            back then). False: every step's correction and frame update run on the host in numpy.
         constraint_tol: the constraint solve stops when a Gauss-Seidel sweep moves no point by more
             than this [m] (default 1e-5 of the body's largest radius ``r_max``).
         constraint_iterations: the most sweeps per step; a step that ends above the tolerance is
@@ -187,6 +196,7 @@ class BemBody(VertexImpulses, Body):
         cache: bool | OperatorCache = True,
         progress: bool | None = None,
         profile: bool = False,
+        device_step: bool = True,
         constraint_tol: float | None = None,
         constraint_iterations: int = 200,
         contact_margin: float | None = None,
@@ -244,6 +254,7 @@ class BemBody(VertexImpulses, Body):
         self.precision = precision
         self.matvec = matvec
         self.profile = bool(profile)
+        self.device_step = bool(device_step)
         self._build_args = dict(method=method, precision=precision, double_nodes=double_nodes, n_max=n_max,
                                 cache=cache, progress=progress, **quadrature)
         if (operators.method if operators is not None else method) == "bdf2":
@@ -321,15 +332,18 @@ class BemBody(VertexImpulses, Body):
     @property
     def frame(self) -> RigidFrame:
         self._require_bound()
+        self._sync()
         return self.state.frame
 
     def displacement(self) -> np.ndarray:
         """(N_nodes, 3) current displacement in frame coordinates [m]."""
         self._require_bound()
+        self._sync()
         return self.state.u.reshape(-1, 3).copy()
 
     def vertex_displacement(self) -> np.ndarray:
         """(V, 3) current displacement per mesh vertex (double-node copies averaged), frame coordinates."""
+        self._sync()
         u = self.state.u.reshape(-1, 3)
         out = np.zeros((len(self._node_count), 3))
         np.add.at(out, self._surface.vertex, u)
@@ -337,11 +351,13 @@ class BemBody(VertexImpulses, Body):
 
     def points(self) -> np.ndarray:
         self._require_bound()
+        self._sync()
         f = self.state.frame
         return (self.rest_vertices + self.vertex_displacement()) @ f.R.T + f.T
 
     def volume(self) -> float:
         """Enclosed volume of the deformed surface [m^3] (divergence theorem)."""
+        self._sync()
         return wmesh.signed_volume(self._surface.nodes + self.state.u.reshape(-1, 3), self._surface.faces)
 
     def linear_momentum(self) -> np.ndarray:
@@ -351,6 +367,7 @@ class BemBody(VertexImpulses, Body):
         constrained step it is the frame's motion after the pose transfer (``BemState``), which
         the frame's own velocity is not (README, BEM constraints)."""
         self._require_bound()
+        self._sync()
         return self.mass * self.state.material_velocity
 
     def angular_momentum(self, about: Sequence[float] | None = None) -> np.ndarray:
@@ -358,6 +375,7 @@ class BemBody(VertexImpulses, Body):
         ``about`` (L + (T - p) x m v), from the material's motion like ``linear_momentum``. On a
         free body with ``gyroscopic`` this is the frame's integrated L."""
         self._require_bound()
+        self._sync()
         st, f = self.state, self.state.frame
         L = f.L.copy() if st.frame_is_material else f.R @ self._inertia @ f.R.T @ st.material_omega
         if about is not None:
@@ -401,6 +419,7 @@ class BemBody(VertexImpulses, Body):
         st = self.state
         if t > st.coupling_until + 1e-9 * self.dt or not len(st.coupling_force):
             return np.zeros((len(self._node_count), 3))
+        self._sync()  # the frame's rotation, during a batch of device steps
         return (st.coupling_force @ st.frame.R) / self._vertex_area[:, None]
 
     def _tractions(self, t: float) -> np.ndarray:
@@ -467,6 +486,8 @@ class BemBody(VertexImpulses, Body):
         self.state.material_velocity = self.state.frame.velocity.copy()
         self.state.material_omega = self.state.frame.omega.copy()
         self._failure: tuple[str, str, str] | None = None  # quantity, detail, reason
+        self._resident: ResidentStep | None = None  # device-step scratch, made on the first such step
+        self._dirty = False  # the device holds newer u and frame than the host (a batch in flight)
         self._window_length = max(ops.n_max, 20)  # steps per window of the growth check
 
     def _state_loaded(self) -> None:
@@ -479,6 +500,7 @@ class BemBody(VertexImpulses, Body):
         self._p_live = False
         self._predicted = None
         self._failure = None
+        self._dirty = False  # the restored host state is the truth
 
     def signature(self) -> dict:
         return {**super().signature(), "nodes": self._surface.n_nodes, "dt": self.dt, "n_max": self._so.n_max,
@@ -852,7 +874,10 @@ class BemBody(VertexImpulses, Body):
             return
         target = int(math.floor(t1 / self.dt + 0.5))
         while self.state.steps < target:
-            self.step()
+            if self._on_device():
+                self._device_steps(target)
+            else:
+                self.step()
             if self._failure is not None:
                 return
 
@@ -871,8 +896,67 @@ class BemBody(VertexImpulses, Body):
             # a force no collider applied. So the constraints have the last word on the positions.
             wc.solve_group([self], [], self._device, self.constraint_tolerance, self.constraint_iterations, self.steps + 1)
             return
+        if self._on_device():
+            self._device_steps(self.steps + 1)
+            return
         u, a_ext, alpha_ext = self.unconstrained_solve()
         self._finish_step(u, a_ext, alpha_ext, time.perf_counter())
+
+    def _on_device(self) -> bool:
+        """Whether the next step runs on the device (``device_step``; ``wsim.bem.device_step``)."""
+        so = self._so
+        return (self.device_step and not self.profile and so.backend == "warp" and so.packed is None
+                and so.compressed is None and self.error_correction and not self.constrained and self._set is None
+                and self._predicted is None)
+
+    def _device_steps(self, target: int) -> None:
+        """Free steps up to step ``target`` (at most ``LOG_ROWS`` of them) on the device: the host
+        evaluates each step's loads and launches; the state comes back once at the end, where each
+        step's checks (``_check_step``) run on the device's log."""
+        t0 = time.perf_counter()
+        st = self.state
+        rs = self._resident
+        if rs is None or rs.U is not st.U or rs.p is not self._p:  # first use, or rings moved (a set, a restore)
+            rs = self._resident = ResidentStep(self._so, (st.U, st.P, st.B, self._U_k, self._P_k),
+                                               (self._p, self._h, self._u_dev, self._p_k, self._h_k),
+                                               self._inertia, self._gravity, self.dt, self.gyroscopic)
+        ops = self._so.operators
+        first = st.steps
+        rs.begin(st.frame)
+        loaded: list[bool] = []
+        while st.steps < target and len(loaded) < LOG_ROWS:
+            p = self._tractions((st.steps + 1) * self.dt) if self._loads else None
+            has_p = p is not None and bool(np.any(p))
+            if has_p:
+                rs.load(p, np.concatenate([ops.A @ p, ops.C @ p]))
+                self._p_live = True  # the traction buffer holds this load (the host path zeroes it)
+            rs.step(st.ring, has_p)
+            if st.steps % 100 == 99:
+                rs.reorthonormalize()
+            self._dirty = True
+            st.ring += 1
+            st.steps += 1
+            loaded.append(has_p)
+        self._sync()
+        self._p_loads = None
+        self._loaded_now = loaded[-1]
+        for k, ((peak, flags), has_p) in enumerate(zip(rs.read_log(), loaded)):
+            self._check_step(first + k + 1, float(peak), int(flags), has_p)
+            if self._failure is not None:
+                break
+        self._tick("step", t0)
+
+    def _sync(self) -> None:
+        """The device's u and frame onto the host after steps launched by ``_device_steps``."""
+        if not self._dirty:
+            return
+        u, frame = self._resident.read()
+        st = self.state
+        st.u = u
+        set_frame(st.frame, frame)
+        st.material_velocity, st.material_omega = st.frame.velocity.copy(), st.frame.omega.copy()
+        st.frame_is_material = True
+        self._dirty = False
 
     def unconstrained_solve(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The paper's UNCNST stage of the coming step: history, loads and Eq. (12), without
@@ -1003,40 +1087,51 @@ class BemBody(VertexImpulses, Body):
         self._check_state()
         return b
 
-    def _check_growth(self, peak: float) -> None:
+    def _check_growth(self, peak: float, steps: int) -> None:
         """Windows of n_max steps: five in a row, all unloaded, each with a peak |u| 20 % above the
         last and above round-off (1e-9 of the body size), mean a growing mode of the discrete
         system - the physical body, passive and unloaded, can only ring down (BDF1 damps it)."""
         st = self.state
         length, current, previous, growing = self._window_length, st.window_peak, st.window_previous, st.window_growing
         current = max(current, peak)
-        if self.steps % length == 0:
-            unloaded = self.steps - st.last_loaded >= 2 * length  # this window and the one before
+        if steps % length == 0:
+            unloaded = steps - st.last_loaded >= 2 * length  # this window and the one before
             if unloaded and previous > 1e-9 * self._so.operators.r_max and current > 1.2 * previous:
                 growing += 1
             else:
                 growing = 0
             if growing >= 5:
                 self._failure = ("displacement", f"|u| grew {current / previous:.2f}x per {length}-step window for "
-                                 f"{growing} windows with no load, to {current:.3g} m at step {self.steps} "
-                                 f"(t = {self.time:.6g} s): the discretization is unstable at this dt and mesh "
+                                 f"{growing} windows with no load, to {current:.3g} m at step {steps} "
+                                 f"(t = {steps * self.dt:.6g} s): the discretization is unstable at this dt and mesh "
                                  "(try a larger dt or a finer mesh)", "growing")
             previous, current = current, 0.0
         st.window_peak, st.window_previous, st.window_growing = current, previous, growing
 
+    # the quantities a step checks for non-finite values, with their bits in the device log
+    _CHECKED = ((1, "displacement"), (2, "frame position"), (4, "frame velocity"), (8, "angular velocity"))
+
     def _check_state(self) -> None:
-        f = self.state.frame
-        for quantity, value in (("displacement", self.state.u), ("frame position", f.T), ("frame velocity", f.velocity),
-                                ("angular velocity", f.omega)):
+        f, u = self.state.frame, self.state.u
+        flags = 0
+        for (bit, _), value in zip(self._CHECKED, (u, f.T, f.velocity, f.omega)):
             if not np.all(np.isfinite(value)):
-                self._failure = (quantity, f"step {self.steps} (t = {self.time:.6g} s)", "non-finite")
+                flags |= bit
+        peak = float(np.max(np.abs(u))) if u.size and not flags else 0.0
+        self._check_step(self.steps, peak, flags, self._loaded_now)
+
+    def _check_step(self, steps: int, peak: float, flags: int, loaded: bool) -> None:
+        """The checks after step ``steps``: non-finite state (``flags``: bits of ``_CHECKED``),
+        the growth check and the divergence limit on ``peak`` = max |u|."""
+        when = f"step {steps} (t = {steps * self.dt:.6g} s)"
+        for bit, quantity in self._CHECKED:
+            if flags & bit:
+                self._failure = (quantity, when, "non-finite")
                 return
-        u = self.state.u
-        peak = float(np.max(np.abs(u))) if u.size else 0.0
-        if self._loaded_now:
-            self.state.last_loaded = self.steps
+        if loaded:
+            self.state.last_loaded = steps
         if self.growth_check:
-            self._check_growth(peak)
+            self._check_growth(peak, steps)
         if peak > self.divergence_limit:
             self._failure = ("displacement", f"|u| = {peak:.3g} m exceeds divergence_limit = "
-                             f"{self.divergence_limit:.3g} m at step {self.steps} (t = {self.time:.6g} s)", "diverging")
+                             f"{self.divergence_limit:.3g} m at {when}", "diverging")

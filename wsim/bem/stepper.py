@@ -80,6 +80,14 @@ class StepOperators:
         return Correction.from_operators(self.operators, self.E)
 
     @cached_property
+    def device_correction(self) -> Any:
+        """The correction's pieces on the device (``wsim.bem.device_step``), built on the first
+        step a body keeps on the device."""
+        from wsim.bem.device_step import DeviceCorrection  # it launches the passes of this module
+
+        return DeviceCorrection.build(self.correction, self.device)
+
+    @cached_property
     def many_backend(self) -> str:
         """How the passes of several bodies on this set run together (``history_many``,
         ``solve_many``): "blas" (numpy matrix-matrix products on the host arrays), "cupy" (cuBLAS
