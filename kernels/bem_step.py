@@ -210,6 +210,8 @@ def correct_step(
     frame: wp.array(dtype=wp.float64),
     log: wp.array2d(dtype=wp.float64),
     counter: wp.array(dtype=wp.int32),
+    divergence_limit: wp.float64,
+    halt: wp.array(dtype=wp.int32),
 ):
     """The ERRCR stage of a free step (paper Sec. 3.2.1 and Eq. 11) by one block, in float64, after
     u_n of Eq. (12) (``wsim.bem.correction.Correction.apply``, then ``BemBody._finish_step``):
@@ -225,35 +227,52 @@ def correct_step(
        L += dt R I b_alpha, omega = R I^-1 R^T L (``gyroscopic``) or omega += dt R b_alpha;
        R <- exp(dt [omega]x) R; T += dt T_dot;
     6. the log row ``counter`` (mod its length): [max_i |u_i|, flags], flags 1: u non-finite,
-       2: T, 4: T_dot, 8: omega (the host's ``_check_state`` reads them after the batch).
+       2: T, 4: T_dot, 8: omega (the host's ``_check_step`` reads them after the batch); with a
+       flag or max |u| > ``divergence_limit``, ``halt`` is set and the batch's later steps
+       change nothing (the host stops the body at this step).
+
+    A non-finite u_n gets no correction (da = dalpha = 0), as on the host.
 
     Per-node blocks: PQH_i = P_Q H_0 columns 3i..3i+2; Ea_i, Eb_i = rows 3i..3i+2 of H_0^-1 D_0 and
     H_0^-1 Q_0. Launch with ``wp.launch_tiled(dim=1, block_dim=...)``; the sums are tile
     reductions, so the result does not depend on timing."""
     _blk, lane = wp.tid()
+    if halt[0] != 0:  # an earlier step of the batch failed: the state stays at that step
+        return
     T = wp.block_dim()
     N = q.shape[0]
     s_u = wp.vec3d()
     s_A = wp.mat33d()
+    bad_in = int(0)
     i = lane
     while i < N:
         un = node_u(u, i)
+        if not (wp.isfinite(un[0]) and wp.isfinite(un[1]) and wp.isfinite(un[2])):
+            bad_in = 1
         s_u += w[i] * un
         s_A += wp.outer(q[i] + un, wq[i])
         i += T
+    bad_in = wp.tile_extract(wp.tile_max(wp.tile(bad_in)), 0)
     t = wp.tile_extract(wp.tile_sum(wp.tile(s_u, preserve_type=True)), 0) / w_sum
     A = wp.tile_extract(wp.tile_sum(wp.tile(s_A, preserve_type=True)), 0) - wp.outer(t, sum_wq)
-    R_e = polar_rotation(A)
-    da = -(K_a * t)
+    # a non-finite u gets no correction (as on the host, whose SVD cannot take it): the frame
+    # moves with the loads alone and the log reports the displacement
+    R_e = wp.identity(n=3, dtype=wp.float64)
+    da = wp.vec3d()
+    if bad_in == 0:
+        R_e = polar_rotation(A)
+        da = -(K_a * t)
     s_d = wp.vec3d()
     i = lane
-    while i < N:
+    while i < N and bad_in == 0:
         un = node_u(u, i)
         pn = q[i] + un - t
         du = wp.transpose(R_e) * pn + cx[i] - (un - t)
         s_d += PQH[i] * du
         i += T
     dalpha = M_t * t + M_a * da + wp.tile_extract(wp.tile_sum(wp.tile(s_d, preserve_type=True)), 0)
+    if bad_in != 0:
+        dalpha = wp.vec3d()
     peak = wp.float64(0.0)
     bad = int(0)
     i = lane
@@ -320,6 +339,8 @@ def correct_step(
         log[row, 0] = peak
         log[row, 1] = flags
         counter[0] = k + 1
+        if flags != wp.float64(0.0) or peak > divergence_limit:
+            halt[0] = 1
 
 
 @wp.kernel

@@ -389,13 +389,18 @@ def test_a_non_finite_history_stops_the_body_at_its_step(ops_cache, device_step)
     the batch) as on the host path."""
     ops = ops_cache(1, 10)
     world, body = make_body(ops, sphere(1), name="ball", matvec="warp", device_step=device_step)
+    x0 = body.points()
+    # a load that reads the state: after the failing step it would see NaN and be refused; the body
+    # must stop before, not blame the load (on the device path it runs a step ahead of the checks)
+    body.add_traction(lambda t: -10.0 * (body.points() - x0))
     body.advance(0.0, 3 * ops.dt)
     body.state.U.fill_(float("inf"))
-    body.advance(body.time, body.time + 5 * ops.dt)
-    assert body.failed
+    body.advance(body.time, body.time + 40 * ops.dt)
+    assert body.failed and body.steps == 4  # stopped at the failing step
     with pytest.raises(wsim.SimulationDiverged, match="ball.*non-finite displacement") as err:
         body.check_finite(1, body.time)
     assert "step 4 " in str(err.value)
+    assert np.all(np.isfinite(body.frame.T)) and np.all(np.isfinite(body.frame.velocity))  # no correction of NaN
 
 
 def test_device_step_matches_the_host_path(device, ops_cache):
@@ -439,6 +444,47 @@ def test_device_step_matches_the_host_path(device, ops_cache):
     assert len(sa) == 3 and np.max(np.abs(sa - sb)) < 1e-11 * scale
     assert np.max(np.abs(fa - fb)) < 1e-11 * np.max(np.abs(fb))
     assert np.max(np.abs(ua - ub)) < 1e-9 * np.max(np.abs(ub))
+
+
+@pytest.mark.parametrize("bodies", [1, 2])
+def test_device_steps_hand_over_to_the_contact_solve(device, ops_cache, bodies):
+    """Balls dropped onto the ground (the second onto the first): free flight runs on the device
+    (``BemBody.device_window``) until the bound on their motion brings them within reach of the
+    ground or each other, then the constraint solve takes over. Fall, landing, bounce and the
+    impact between the balls follow the all-host run to round-off."""
+    ops = ops_cache(1, 10, "float64")
+    # the second ball on operators of its own: balls on one set step as an instance set (CUDA with
+    # CuPy), which keeps the host path
+    meshes = [sphere(1), trimesh.creation.icosphere(subdivisions=1, radius=0.9 * RADIUS)]
+    sets = [ops] + ([build_operators(meshes[1], MAT, ops.dt, precision="float64", cache=False, device="cpu")]
+                    if bodies == 2 else [])
+    runs = []
+    for on_device in (True, False):
+        world = wsim.World(fps=50, device=device, gravity=(0.0, -9.81, 0.0))
+        world.add_collider(wsim.GroundPlane(0.0, friction=0.3))
+        balls = [world.add(wsim.BemBody(meshes[k], MAT, ops.dt, operators=sets[k], matvec="warp", device_step=on_device,
+                                        name=f"ball{k}", position=(0.04 * k, 0.3 + 0.3 * k, 0.0), velocity=(0.3, 0.0, 0.0),
+                                        angular_velocity=(0.0, 0.0, 2.0))) for k in range(bodies)]
+        on = [0]
+        for b in balls:
+            def counted(target, b=b, run=b._device_steps):
+                first = b.steps
+                run(target)
+                on[0] += b.steps - first
+            b._device_steps = counted
+        pts = []
+        for _ in range(25 if bodies == 1 else 32):
+            world.step()
+            pts.append(np.concatenate([b.points() for b in balls]))
+        runs.append((np.array(pts), np.array([b.state.contact_impulse for b in balls]), on[0], balls[0].steps * bodies))
+    (pa, ja, on_device, steps), (pb, jb, on_host, _) = runs
+    # the falls run on the device (a group only while all of it is free), the contact steps not
+    assert on_host == 0 and 0.3 * steps < on_device < steps
+    assert np.abs(jb[:, 1]).min() > 0.1 * MAT.rho * 3.05e-3 * 9.81 * 0.1  # every ball was pushed up
+    assert pb[:, :, 1].min() > -1e-5  # landed, within 10 um of the ground
+    assert bodies == 2 or pb[-1, :, 1].min() > 1e-3  # and the lone ball bounced
+    assert np.max(np.abs(pa - pb)) < 1e-10
+    assert np.max(np.abs(ja - jb)) < 1e-9 * np.abs(jb).max()
 
 
 def test_device_trajectory_matches_cpu_blas(device, ops_cache):

@@ -61,6 +61,50 @@ def _time(fn, repeats: int, sync) -> float:
     return best
 
 
+def _drop(mesh, material, ops, dev, sync, frames: int = 30) -> dict:
+    """The body dropped from rest onto a ground plane in a World at 30 fps, device steps on and
+    off: seconds per frame over the fall and the landing, the steps the device took, and the
+    largest point difference between the two runs."""
+    import wsim
+
+    out: dict = {"frames": frames}
+    ends = []
+    for on in (None, True, False):  # None: an untimed run first (the contact kernels compile on first contact)
+        world = wsim.World(fps=30, device=dev.alias, gravity=(0.0, -9.81, 0.0))
+        world.add_collider(wsim.GroundPlane(0.0, friction=0.3))
+        drop = 0.5 * 9.81 * (0.6 * frames / 30.0) ** 2  # lands after 60 % of the frames
+        lo = float((ops.surface.nodes - ops.com)[:, 1].min())
+        body = world.add(wsim.BemBody(mesh, material, ops.dt, operators=ops, device_step=bool(on), cache=False, matvec="warp",
+                                      position=(0.0, drop - lo, 0.0) - ops.com))
+        on_device = [0]
+        run = body._device_steps
+
+        def counted(target, run=run, body=body, on_device=on_device):
+            first = body.steps
+            run(target)
+            on_device[0] += body.steps - first
+
+        body._device_steps = counted
+        world.step()  # compile, capture
+        sync()
+        t0 = time.perf_counter()
+        pts = []
+        for _ in range(frames - 1):
+            world.step()
+            pts.append(body.points())
+        sync()
+        if on is None:
+            continue
+        key = "device" if on else "host"
+        out[f"{key}_seconds_per_frame"] = (time.perf_counter() - t0) / (frames - 1)
+        out[f"{key}_steps_on_device"] = on_device[0]
+        out["steps"] = body.steps
+        out["lowest_point_m"] = float(np.array(pts)[:, :, 1].min())
+        ends.append(np.array(pts))
+    out["device_vs_host_points_m"] = float(np.abs(ends[0] - ends[1]).max())
+    return out
+
+
 def run_case(name: str, device: str | None, precision: str, mesh_path: str | None, steps: int,
              ratios: list[float] | None = None, compare_steps: int = 100) -> dict:
     import warp as wp
@@ -142,6 +186,7 @@ def run_case(name: str, device: str | None, precision: str, mesh_path: str | Non
             paths["device_vs_host_path_points_m"] = float(np.abs(ends[0][0] - ends[1][0]).max())
             paths["device_vs_host_path_velocity_m_s"] = float(np.abs(ends[0][1] - ends[1][1]).max())
             paths["compared_steps"] = steps
+            paths["world_drop"] = _drop(mesh, material, ops, dev, sync)
         uncnst = _time(body.unconstrained_solve, 50, sync)  # UNCNST alone, no per-stage syncs
         so = body._so
         h = so.vectors()

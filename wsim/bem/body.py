@@ -47,7 +47,7 @@ from wsim.materials import ElasticMaterial, body_material
 from wsim.validate import as_rotation, as_vec3, call_user, callback_array, finite_number, positive_int
 
 TractionFn = Callable[[float], Any]
-STAGES = ("history", "loads", "solve", "collision", "constraints", "correction", "frame")
+STAGES = ("history", "loads", "solve", "collision", "constraints", "correction", "frame", "device")
 
 
 @dataclass
@@ -147,8 +147,9 @@ class BemBody(VertexImpulses, Body):
         profile: synchronize the device after each stage so ``timings`` splits GPU time by stage
             (such steps take the host path below).
         device_step: keep a free step on the device (``wsim.bem.device_step``): with dense Warp
-            operators, ``frame_update`` and ``error_correction`` on and no constraint, the error
-            correction and frame update run as one kernel after the passes, on CUDA each step is
+            operators, ``frame_update`` and ``error_correction`` on, no held point and no collider
+            or other body within reach (``device_window``), the error correction and frame
+            update run as one kernel after the passes, on CUDA each step is
             replayed as a CUDA graph, and the host reads the state back once per ``advance`` (a
             World frame or coupling interval; reading ``frame`` or ``points()`` in a load reads it
             back then). False: every step's correction and frame update run on the host in numpy.
@@ -387,6 +388,7 @@ class BemBody(VertexImpulses, Body):
         ``linear_momentum``). The deformation's own kinetic energy is not included: a surface-only
         method has no interior velocities to integrate it from."""
         self._require_bound()
+        self._sync()
         st = self.state
         v, w = st.material_velocity, st.material_omega
         return 0.5 * self.mass * float(v @ v) + 0.5 * float(w @ self.angular_momentum())
@@ -489,6 +491,10 @@ class BemBody(VertexImpulses, Body):
         self._resident: ResidentStep | None = None  # device-step scratch, made on the first such step
         self._dirty = False  # the device holds newer u and frame than the host (a batch in flight)
         self._window_length = max(ops.n_max, 20)  # steps per window of the growth check
+
+    def get_state(self) -> dict[str, np.ndarray]:
+        self._sync()  # a load reading it during a batch of device steps gets that step's state
+        return super().get_state()
 
     def _state_loaded(self) -> None:
         if self._scratch is not None:  # the wavelet-domain rings follow the restored ones
@@ -874,8 +880,9 @@ class BemBody(VertexImpulses, Body):
             return
         target = int(math.floor(t1 / self.dt + 0.5))
         while self.state.steps < target:
-            if self._on_device():
-                self._device_steps(target)
+            window = BemBody.device_window([self], target)
+            if window:
+                self._device_steps(self.state.steps + window)
             else:
                 self.step()
             if self._failure is not None:
@@ -889,6 +896,9 @@ class BemBody(VertexImpulses, Body):
     # -- the step -----------------------------------------------------------------------------
     def step(self) -> None:
         """One step of length dt (Eqs. 9-12, Sec. 3.2.1, Eq. 11)."""
+        if BemBody.device_window([self], self.steps + 1):
+            self._device_steps(self.steps + 1)
+            return
         if self.constrained:
             # On a constrained step the error correction moves u's rigid drift into the frame's pose
             # (``Correction.drift``), not its acceleration: the paper's da, dalpha moved the points
@@ -896,55 +906,152 @@ class BemBody(VertexImpulses, Body):
             # a force no collider applied. So the constraints have the last word on the positions.
             wc.solve_group([self], [], self._device, self.constraint_tolerance, self.constraint_iterations, self.steps + 1)
             return
-        if self._on_device():
-            self._device_steps(self.steps + 1)
-            return
         u, a_ext, alpha_ext = self.unconstrained_solve()
         self._finish_step(u, a_ext, alpha_ext, time.perf_counter())
 
     def _on_device(self) -> bool:
-        """Whether the next step runs on the device (``device_step``; ``wsim.bem.device_step``)."""
+        """Whether this body's free steps can run on the device (``device_step``; ``wsim.bem.device_step``)."""
         so = self._so
         return (self.device_step and not self.profile and so.backend == "warp" and so.packed is None
-                and so.compressed is None and self.error_correction and not self.constrained and self._set is None
+                and so.compressed is None and self.error_correction and not self._fixed and self._set is None
                 and self._predicted is None)
+
+    @staticmethod
+    def device_window(bodies: Sequence[BemBody], target: int) -> int:
+        """How many of the steps up to ``target`` ``bodies`` (stepping together) can take on the
+        device: steps on which, by a bound on their motion, no node of any of them can come
+        within the contact margin of a collider or of another of them, so the constrained step
+        would find no point and end as a free one (``constraint_end_free``). 0: step on the host.
+
+        The bound: every node moves by at most s(tau) = (|v| + |omega| rho) tau + |g| tau^2 / 2 in
+        tau seconds (rho the largest lever about the centre of mass), with a factor 2 of safety;
+        the gaps (each node's height above a ground plane, the distance between bounding balls
+        for a static mesh collider or another body) keep a slack of the contact margin, twice
+        the recent peak |u| (elastic vibration) and 5 % of r_max. A kinematic mesh collider, held
+        points, a user's traction load or a push of other bodies still in force (their size is
+        not known ahead) keep a body near anything on the host path."""
+        todo = target - bodies[0].state.steps
+        if todo <= 0 or not all(b._on_device() for b in bodies):
+            return 0
+        reach = [b._reach() for b in bodies]
+        gaps: list[tuple[float, float, float]] = []  # (distance, speed bound, acceleration bound)
+        for b, (T, rho, slack, a, acc) in zip(bodies, reach):
+            found = b._collider_gaps(T, rho)
+            if found is None:
+                return 0
+            gaps += [(d - slack, a, acc) for d in found]
+        for i in range(len(bodies)):
+            for j in range(i + 1, len(bodies)):
+                (Ti, ri, si, ai, bi), (Tj, rj, sj, aj, bj) = reach[i], reach[j]
+                gaps.append((float(np.linalg.norm(Ti - Tj)) - ri - rj - si - sj, ai + aj, bi + bj))
+        if not gaps:
+            return todo
+        if any(b._unknown_loads() for b in bodies):
+            return 0
+        dt = bodies[0].dt
+        for d, a, acc in gaps:
+            if d <= 0.0:
+                return 0
+            # 2 (a tau + acc tau^2 / 2) <= d
+            tau = d / (2.0 * a) if acc <= 0.0 else (-a + math.sqrt(a * a + 2.0 * acc * d)) / (2.0 * acc)
+            todo = min(todo, int(tau / dt))
+        return max(todo, 0)
+
+    def _reach(self) -> tuple[np.ndarray, float, float, float, float]:
+        """(centre T, radius rho, slack, speed bound, acceleration bound) of ``device_window``."""
+        st, ops = self.state, self._so.operators
+        f = st.frame
+        u = st.u.reshape(-1, 3)
+        lever = (ops.surface.nodes - ops.com + u) @ f.R.T
+        rho = float(np.sqrt((lever * lever).sum(axis=1).max()))
+        peak = max(st.window_peak, st.window_previous, float(np.abs(st.u).max(initial=0.0)))
+        slack = self.contact_distance + 2.0 * peak + 0.05 * ops.r_max
+        speed = float(np.linalg.norm(f.velocity)) + float(np.linalg.norm(f.omega)) * rho
+        return f.T.copy(), rho, slack, speed, 0.5 * float(np.linalg.norm(self._gravity))
+
+    def _collider_gaps(self, T: np.ndarray, rho: float) -> list[float] | None:
+        """The body's distance to each collider (see ``device_window``); None with a kinematic mesh."""
+        surfaces = self._surfaces
+        if surfaces is None:
+            return []
+        out = []
+        X = None
+        for ci, col in enumerate(surfaces):
+            plane = surfaces.plane(ci)
+            if plane is not None:
+                if X is None:
+                    st, ops = self.state, self._so.operators
+                    X = (ops.surface.nodes - ops.com + st.u.reshape(-1, 3)) @ st.frame.R.T + st.frame.T
+                n, h = plane
+                out.append(float((X @ n - h).min()))
+            elif col.kinematic:
+                return None
+            else:
+                c, r = _collider_ball(col)
+                out.append(float(np.linalg.norm(T - c)) - rho - r)
+        return out
+
+    def _unknown_loads(self) -> bool:
+        """A user's traction load, or a push of other bodies still in force after this step."""
+        st = self.state
+        if any(fn != self._coupling_tractions for fn in self._loads):
+            return True
+        return bool(len(st.coupling_force)) and st.coupling_until >= (st.steps + 1) * self.dt - 1e-9 * self.dt
 
     def _device_steps(self, target: int) -> None:
         """Free steps up to step ``target`` (at most ``LOG_ROWS`` of them) on the device: the host
         evaluates each step's loads and launches; the state comes back once at the end, where each
-        step's checks (``_check_step``) run on the device's log."""
+        step's checks (``_check_step``) run on the device's log. A failing step (non-finite,
+        diverging) stops the device there: the body's state and step count are that step's."""
         t0 = time.perf_counter()
         st = self.state
         rs = self._resident
-        if rs is None or rs.U is not st.U or rs.p is not self._p:  # first use, or rings moved (a set, a restore)
+        settings = (self.gyroscopic, float(self.divergence_limit))
+        if rs is None or rs.U is not st.U or rs.p is not self._p or rs.settings != settings:
+            # first use, rings moved (a set, a restore) or settings the graphs bake in changed
             rs = self._resident = ResidentStep(self._so, (st.U, st.P, st.B, self._U_k, self._P_k),
                                                (self._p, self._h, self._u_dev, self._p_k, self._h_k),
-                                               self._inertia, self._gravity, self.dt, self.gyroscopic)
+                                               self._inertia, self._gravity, self.dt, *settings)
         ops = self._so.operators
-        first = st.steps
+        first, ring = st.steps, st.ring
         rs.begin(st.frame)
         loaded: list[bool] = []
-        while st.steps < target and len(loaded) < LOG_ROWS:
-            p = self._tractions((st.steps + 1) * self.dt) if self._loads else None
-            has_p = p is not None and bool(np.any(p))
-            if has_p:
-                rs.load(p, np.concatenate([ops.A @ p, ops.C @ p]))
-                self._p_live = True  # the traction buffer holds this load (the host path zeroes it)
-            rs.step(st.ring, has_p)
-            if st.steps % 100 == 99:
-                rs.reorthonormalize()
-            self._dirty = True
-            st.ring += 1
-            st.steps += 1
-            loaded.append(has_p)
+        try:
+            while st.steps < target and len(loaded) < LOG_ROWS:
+                p = self._tractions((st.steps + 1) * self.dt) if self._loads else None
+                has_p = p is not None and bool(np.any(p))
+                if has_p:
+                    rs.load(p, np.concatenate([ops.A @ p, ops.C @ p]))
+                    self._p_live = True  # the traction buffer holds this load (the host path zeroes it)
+                rs.step(st.ring, has_p)
+                if st.steps % 100 == 99:
+                    rs.reorthonormalize()
+                self._dirty = True
+                st.ring += 1
+                st.steps += 1
+                loaded.append(has_p)
+        except Exception:
+            self._end_device_steps(rs, first, ring, loaded, t0)
+            if self._failure is not None:
+                return  # the body failed at an earlier step, before the host path would have called the load
+            raise
+        self._end_device_steps(rs, first, ring, loaded, t0)
+
+    def _end_device_steps(self, rs: ResidentStep, first: int, ring: int, loaded: list[bool], t0: float) -> None:
+        """Read the batch's state back and run each step's checks on the log."""
+        st = self.state
         self._sync()
         self._p_loads = None
-        self._loaded_now = loaded[-1]
+        self._loaded_now = bool(loaded) and loaded[-1]
+        st.point_nodes, st.point_kinds = np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)  # no point
+        st.point_forces = np.zeros((0, 3))  # held or touched (the constraint solve's warm start)
         for k, ((peak, flags), has_p) in enumerate(zip(rs.read_log(), loaded)):
             self._check_step(first + k + 1, float(peak), int(flags), has_p)
             if self._failure is not None:
+                if self._failure[2] != "growing":  # the device stopped at this step (``correct_step``'s halt)
+                    st.steps, st.ring = first + k + 1, ring + k + 1
                 break
-        self._tick("step", t0)
+        self._tick("device", t0)
 
     def _sync(self) -> None:
         """The device's u and frame onto the host after steps launched by ``_device_steps``."""
@@ -1135,3 +1242,12 @@ class BemBody(VertexImpulses, Body):
         if peak > self.divergence_limit:
             self._failure = ("displacement", f"|u| = {peak:.3g} m exceeds divergence_limit = "
                              f"{self.divergence_limit:.3g} m at {when}", "diverging")
+
+
+def _collider_ball(col: Any) -> tuple[np.ndarray, float]:
+    """(centre, radius) of a ball around a static mesh collider's vertices (world)."""
+    M = col.matrix(0.0)
+    x = col.vertices @ M[:3, :3].T + M[:3, 3]
+    c = 0.5 * (x.min(axis=0) + x.max(axis=0))
+    return c, float(np.sqrt(((x - c) ** 2).sum(axis=1).max()))
+

@@ -96,9 +96,10 @@ class ResidentStep:
     """
 
     def __init__(self, so: stepper.StepOperators, rings: tuple[wp.array, ...], vectors: tuple[wp.array, ...],
-                 inertia: np.ndarray, gravity: np.ndarray, dt: float, gyroscopic: bool) -> None:
+                 inertia: np.ndarray, gravity: np.ndarray, dt: float, gyroscopic: bool, divergence_limit: float) -> None:
         dev = so.device
         self.so = so
+        self.settings = (bool(gyroscopic), float(divergence_limit))  # baked into the graphs
         self.dc: DeviceCorrection = so.device_correction
         self.U, self.P, self.B, self.U_k, self.P_k = rings
         self.p, self.h, self.u, self.p_k, self.h_k = vectors
@@ -110,6 +111,7 @@ class ResidentStep:
         self.ext = wp.zeros(6, dtype=wp.float64, device=dev)
         self.log = wp.zeros((LOG_ROWS, 2), dtype=wp.float64, device=dev)
         self.counter = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.halt = wp.zeros(1, dtype=wp.int32, device=dev)  # set by a failing step: the rest of the batch does nothing
         pinned = dev.is_cuda
         # two load buffers, so the host fills one while the device still copies from the other;
         # an event per buffer says when its copy is done
@@ -127,6 +129,7 @@ class ResidentStep:
         """Start a batch from the host's frame (the host's state is the truth between batches)."""
         self.frame.assign(frame_vector(frame))
         self.counter.zero_()
+        self.halt.zero_()
         self.steps = 0
 
     def load(self, p: np.ndarray, ext: np.ndarray) -> None:
@@ -175,7 +178,8 @@ class ResidentStep:
             self.u, self.p, self.ext, int(with_p), dc.q, dc.wq, dc.w, dc.cx, dc.PQH, dc.Ea, dc.Eb,
             wp.float64(dc.w_sum), wp.vec3d(*dc.sum_wq), wp.mat33d(*dc.K_a.reshape(-1)), wp.mat33d(*dc.M_t.reshape(-1)),
             wp.mat33d(*dc.M_a.reshape(-1)), inertia, inertia_inv, gravity, dt, gyroscopic, slot,
-            self.U, self.P, self.B, self.u64, self.frame, self.log, self.counter])
+            self.U, self.P, self.B, self.u64, self.frame, self.log, self.counter,
+            wp.float64(self.settings[1]), self.halt])
 
     def reorthonormalize(self) -> None:
         wp.launch(ks.reorthonormalize, dim=1, inputs=[self.frame], device=self.so.device)
@@ -185,5 +189,6 @@ class ResidentStep:
         return self.u64.numpy().copy(), self.frame.numpy().copy()
 
     def read_log(self) -> np.ndarray:
-        """(steps, 2) [max |u|, flags] of this batch's steps, in order."""
+        """(steps, 2) [max |u|, flags] of this batch's steps, in order (up to a failing step:
+        the rows after it are stale)."""
         return self.log.numpy()[: self.steps].copy()
