@@ -402,3 +402,35 @@ def test_block_on_an_incline_sticks_or_slides_at_g_sin_minus_mu_cos(box_ops, mu)
     expected = max(G * (np.sin(theta) - mu * np.cos(theta)), 0.0) * body.time
     assert v == pytest.approx(expected, abs=0.03 * G * np.sin(theta) * body.time)
     assert (body.points() @ n).min() > -body.constraint_tolerance
+
+
+def test_batched_contact_queries_match_one_query_per_pair():
+    """``wsim.contact.body_contacts`` queries each surface once with the nodes of every body near
+    it; the contacts are those of one ``points_inside`` query per pair and direction, in order."""
+    import trimesh
+
+    from wsim import mesh as wmesh
+    import warp as wp
+
+    from wsim.contact import body_contacts, pair_friction, points_inside
+
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
+    V0, F = np.asarray(ball.vertices), np.asarray(ball.faces)
+    test = wmesh.inside_test(F)
+    bodies = [object() for _ in range(3)]
+    shifts = ([0.0, 0.0, 0.0], [0.17, 0.0, 0.0], [0.08, 0.15, 0.0])  # each overlaps the others
+    surfaces = [(b, V0 + s, F, V0 + s - [0.0, 0.001, 0.0], mu, test) for b, s, mu in zip(bodies, shifts, (0.2, 0.5, None))]
+    margin, dev = 2e-3, wp.get_device("cpu")
+    found = body_contacts(surfaces, margin, dev)
+    expected = []
+    for i in range(3):
+        for j in range(i + 1, 3):
+            for p, f in ((i, j), (j, i)):
+                hit, face, bary, normal = points_inside(surfaces[p][1], surfaces[f][1], F, margin, dev, test)
+                if len(hit):
+                    expected.append((p, f, hit, face, bary, normal, pair_friction(surfaces[i][4], surfaces[j][4])))
+    assert len(found) == len(expected) >= 4
+    for c, (p, f, hit, face, bary, normal, mu) in zip(found, expected):
+        assert c.body_a is bodies[p] and c.body_b is bodies[f]
+        assert np.array_equal(c.refs_a.ids[:, 0], hit) and np.array_equal(c.refs_b.ids, F[face])
+        assert np.allclose(c.refs_b.w, bary) and np.allclose(c.normal, normal) and np.allclose(c.mu, mu)

@@ -174,9 +174,10 @@ class Participant(Protocol):
         """Predict the coming step; returns (points, constraints on them, predicted world positions of
         every node of the body (N, 3))."""
 
-    def contact_surface(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float | None]:
-        """(predicted node positions, faces, node positions at the step start, friction) of the
-        opened step, for contact between bodies (``wsim.contact``)."""
+    def contact_surface(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float | None, int]:
+        """(predicted node positions, faces, node positions at the step start, friction, the faces'
+        inside test ``wsim.mesh.inside_test``) of the opened step, for contact between bodies
+        (``wsim.contact``)."""
 
     def constraint_response(self, points: PointRefs) -> tuple[wp.array, wp.array]:
         """K (3m, 3m) [m/N] of ``points`` on the device (V = V0 + K f) and its transpose."""

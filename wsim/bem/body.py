@@ -30,7 +30,7 @@ import warp as wp
 
 from wsim import mesh as wmesh
 from wsim import constraints as wc
-from wsim.contact import nearest_faces, points_inside
+from wsim.contact import nearest_faces, points_inside, query_device
 from wsim.bem import stepper
 from wsim.bem.device_step import LOG_ROWS, ResidentStep, set_frame
 from wsim.bem.constraints import (PointResponse, add_point_displacement, frame_terms, point_displacement,
@@ -266,6 +266,9 @@ class BemBody(VertexImpulses, Body):
         self._mesh = (vertices, faces)
         self._faces = faces.astype(np.int32)
         self._surface = surface
+        # contact's inside test of the node faces (ray parity for one watertight piece; double
+        # nodes leave cracks in the node faces, which the winding number does not mind)
+        self._inside_test = wmesh.inside_test(surface.faces)
         self._props = props
         self._R0 = R0
         self._T0 = props.com + as_vec3(position, f"body '{name}': position")  # rotation is about the com
@@ -678,7 +681,7 @@ class BemBody(VertexImpulses, Body):
         if not len(near):
             return None
         faces = self._surface.faces
-        inside, f, bary, nrm = points_inside(c[near], V, faces, 0.0, self._device)
+        inside, f, bary, nrm = points_inside(c[near], V, faces, 0.0, self._device, self._inside_test)
         if not len(inside):
             return None
         refs = wc.PointRefs(faces[f].astype(np.int64), bary)
@@ -695,10 +698,13 @@ class BemBody(VertexImpulses, Body):
         col = self._surfaces[ci]
         M = self._surfaces.matrix(ci, t)
         local = (V - M[:3, 3]) @ np.linalg.inv(M[:3, :3]).T
-        hit, face, bary, nrm = nearest_faces(col.device_mesh(self._device), local, col.extent, margin, self._device,
-                                           closed=col.closed)
-        keep = ~held[hit]
-        hit, face, bary, nrm = hit[keep], face[keep], bary[keep], nrm[keep]
+        # only nodes in the collider's box (grown by the margin) can be inside it or that near
+        lo, hi = col.vertices.min(axis=0) - margin, col.vertices.max(axis=0) + margin
+        near = np.flatnonzero(np.all((local >= lo) & (local <= hi), axis=1) & ~held)
+        where = query_device(self._device, len(near))
+        hit, face, bary, nrm = nearest_faces(col.device_mesh(where), local[near], col.extent, margin, where,
+                                             closed=col.inside_test)
+        hit = near[hit]
         closest = np.einsum("mk,mkd->md", bary, col.vertices[col.faces[face]]) @ M[:3, :3].T + M[:3, 3]
         normal = nrm @ M[:3, :3].T  # a rigid pose: normals turn like the mesh
         normal /= np.linalg.norm(normal, axis=1, keepdims=True)
@@ -733,11 +739,11 @@ class BemBody(VertexImpulses, Body):
         self._tick("collision", t0)
         return refs, points, V
 
-    def contact_surface(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float | None]:
+    def contact_surface(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float | None, int]:
         """(predicted node positions, faces into the nodes, node positions at the step start,
-        friction) of the step ``constraint_begin`` opened (``wsim.contact``)."""
+        friction, the faces' inside test) of the step ``constraint_begin`` opened (``wsim.contact``)."""
         cs = self._cs
-        return cs["V"], self._surface.faces, cs["X_prev"], self.friction
+        return cs["V"], self._surface.faces, cs["X_prev"], self.friction, self._inside_test
 
     def constraint_response(self, points: wc.PointRefs) -> tuple[wp.array, wp.array]:
         """K (3m, 3m) of Eq. (14) for ``points`` and its transpose (``wsim.bem.constraints``)."""

@@ -15,6 +15,7 @@ import warp as wp
 
 from wsim.bem.operators import PRECISIONS
 from wsim.bem.stepper import StepOperators
+from wsim.launch import concrete
 from wsim.rigid import cross_matrix
 from wsim.kernels import bem_constraints as kb
 
@@ -58,7 +59,7 @@ def response_matrix(so: StepOperators, pr: PointResponse, points, Rk: np.ndarray
         return wp.array(np.ascontiguousarray(a, dtype=np.float64), dtype=wp.mat33d, device=d)
 
     W, row_of = response_rows(so, points.ids.ravel())
-    wp.launch(kb.response_blocks, dim=(m, m), device=d,
+    wp.launch(concrete(kb.response_blocks, W=(2, W.dtype)), dim=(m, m), device=d,
               inputs=[W, row_of, wp.array(points.ids.astype(np.int32), dtype=wp.vec3i, device=d),
                       wp.array(points.w, dtype=wp.vec3d, device=d),
                       wp.mat33d(*Rk.ravel()), wp.mat33d(*R1.ravel()), pr.inv_area, pr.C_over_a, mats(lin_a),
@@ -124,7 +125,7 @@ def point_displacement(so: StepOperators, rows: np.ndarray, nodes: np.ndarray, p
     d = so.device
     out = wp.empty(len(rows), dtype=wp.vec3d, device=d)
     W, row_of = response_rows(so, rows)
-    wp.launch(kb.point_rows, dim=len(rows), device=d,
+    wp.launch(concrete(kb.point_rows, W=(2, W.dtype)), dim=len(rows), device=d,
               inputs=[W, row_of, wp.array(rows.astype(np.int32), dtype=wp.int32, device=d),
                       wp.array(nodes.astype(np.int32), dtype=wp.int32, device=d),
                       wp.array(np.ascontiguousarray(p), dtype=wp.vec3d, device=d), out])

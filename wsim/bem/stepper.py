@@ -38,6 +38,7 @@ from wsim.bem.correction import Correction
 from wsim.bem.factorization import cupy_module
 from wsim.bem.operators import PRECISIONS, BemOperators
 from wsim.errors import InvalidParameter
+from wsim.launch import concrete
 from wsim.kernels import bem_compressed as kc
 from wsim.kernels import bem_compressed_warps as kw
 from wsim.kernels import bem_step as ks
@@ -464,7 +465,9 @@ def history(so: StepOperators, U: wp.array, P: wp.array, B: wp.array, step: int,
         _compressed_history(so, U, P, B, step, h, scratch)
         return
     if so.backend == "warp":
-        wp.launch_tiled(ks.history_matvec, dim=so.size, block_dim=int(ks.MATVEC_BLOCK), device=so.device,
+        V, S = _VEC4[so.dtype], so.dtype
+        kernel = concrete(ks.history_matvec, H=(2, V), G=(2, V), U=(2, V), P=(2, V), DQ=(3, S), B=(2, S), h=(1, S))
+        wp.launch_tiled(kernel, dim=so.size, block_dim=int(ks.MATVEC_BLOCK), device=so.device,
                         inputs=[so.vec4["H"], so.vec4["G"], U, P, so.DQ, B, step, h])
         return
     DQ = so.DQ.numpy()
@@ -497,7 +500,9 @@ def solve(so: StepOperators, p: wp.array | None, h: wp.array, u: wp.array,
         _compressed_solve(so, p, h, u, scratch)
         return
     if so.backend == "warp":
-        wp.launch_tiled(ks.solve_matvec, dim=so.size, block_dim=int(ks.MATVEC_BLOCK), device=so.device,
+        V = _VEC4[so.dtype]
+        kernel = concrete(ks.solve_matvec, H0_inv_Gp=(2, V), H0_inv=(2, V), p=(1, V), h=(1, V), u=(1, so.dtype))
+        wp.launch_tiled(kernel, dim=so.size, block_dim=int(ks.MATVEC_BLOCK), device=so.device,
                         inputs=[so.vec4["H0_inv_Gp"], so.vec4["H0_inv"], h if p is None else p, h, int(p is not None), u])
         return
     if so.compressed is not None:
