@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+import warp as wp
 
 import wsim
 from wsim.bem import build_operators
@@ -410,8 +411,6 @@ def test_batched_contact_queries_match_one_query_per_pair():
     import trimesh
 
     from wsim import mesh as wmesh
-    import warp as wp
-
     from wsim.contact import body_contacts, pair_friction, points_inside
 
     ball = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
@@ -434,3 +433,22 @@ def test_batched_contact_queries_match_one_query_per_pair():
         assert c.body_a is bodies[p] and c.body_b is bodies[f]
         assert np.array_equal(c.refs_a.ids[:, 0], hit) and np.array_equal(c.refs_b.ids, F[face])
         assert np.allclose(c.refs_b.w, bary) and np.allclose(c.normal, normal) and np.allclose(c.mu, mu)
+
+
+def test_point_displacement_on_the_host_matches_the_kernel(box_ops, device, monkeypatch):
+    """``point_displacement`` of a few points runs in numpy on the host copy of W; the device kernel
+    (``kernels.bem_constraints.point_rows``) gives the same displacements."""
+    from wsim.bem import constraints as bc
+    from wsim.bem.stepper import resolve_backend, step_operators
+
+    dev = wp.get_device(device)
+    so = step_operators(box_ops, dev, resolve_backend("auto", dev))
+    rng = np.random.default_rng(5)
+    n = box_ops.n_nodes
+    rows, nodes = rng.choice(n, 12, replace=False), rng.choice(n, 7, replace=False)
+    p = rng.normal(size=(7, 3)) * 100.0
+    host = bc.point_displacement(so, rows, nodes, p)
+    monkeypatch.setattr(bc, "HOST_PAIRS", 0)
+    kernel = bc.point_displacement(so, rows, nodes, p)
+    assert np.abs(host).max() > 0.0
+    assert np.allclose(host, kernel, rtol=1e-12, atol=1e-14 * np.abs(host).max())

@@ -120,8 +120,19 @@ def add_point_displacement(so: StepOperators, nodes: np.ndarray, p: np.ndarray, 
     return u + point_displacement(so, every, nodes, p).reshape(-1)
 
 
+HOST_PAIRS = 1 << 14  # (row, node) pairs up to which ``point_displacement`` runs in numpy on the host
+
+
 def point_displacement(so: StepOperators, rows: np.ndarray, nodes: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """(len(rows), 3) displacement W[rows, nodes] p of the (m, 3) frame-axes tractions p on ``nodes``."""
+    """(len(rows), 3) displacement W[rows, nodes] p of the (m, 3) frame-axes tractions p on ``nodes``.
+    Up to ``HOST_PAIRS`` (row, node) pairs of dense operators on the host copy of W: the product is
+    microseconds there, where a launch costs its uploads and a read-back (a small body's contact
+    steps make a few of these each)."""
+    if so.compressed is None and len(rows) * len(nodes) <= HOST_PAIRS:
+        W = so.operators.H0_inv_Gp
+        r = (3 * np.asarray(rows, dtype=np.int64)[:, None] + np.arange(3)).ravel()
+        c = (3 * np.asarray(nodes, dtype=np.int64)[:, None] + np.arange(3)).ravel()
+        return (W[np.ix_(r, c)].astype(np.float64) @ np.asarray(p, dtype=np.float64).reshape(-1)).reshape(-1, 3)
     d = so.device
     out = wp.empty(len(rows), dtype=wp.vec3d, device=d)
     W, row_of = response_rows(so, rows)
