@@ -70,12 +70,13 @@ def nearest_faces(mesh: wp.Mesh, points: np.ndarray, reach: float, margin: float
     return hit, f[hit], values[:k][hit], values[k:][hit]
 
 
-def query_device(device: wp.Device, points: int) -> wp.Device:
+def query_device(device: wp.Device | str, points: int) -> wp.Device:
     """Where a query of ``points`` points runs: the CPU for fewer than ``HOST_QUERY_POINTS``. Each
     point is one thread's serial walk of a BVH, so a GPU launch costs its latency whatever the
     count (H100, a 1408-face bowl: 0.37-0.55 ms for 10-42 points by ray parity, 1.0-1.6 ms by the
     winding number) while the host walks one point in ~5 us (0.27-0.38 ms; 0.41-0.80) and keeps
     the points and results where they are, on the host."""
+    device = wp.get_device(device)
     return device if device.is_cpu or points >= HOST_QUERY_POINTS else wp.get_device("cpu")
 
 

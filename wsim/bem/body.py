@@ -698,9 +698,12 @@ class BemBody(VertexImpulses, Body):
         col = self._surfaces[ci]
         M = self._surfaces.matrix(ci, t)
         local = (V - M[:3, 3]) @ np.linalg.inv(M[:3, :3]).T
-        # only nodes in the collider's box (grown by the margin) can be inside it or that near
-        lo, hi = col.vertices.min(axis=0) - margin, col.vertices.max(axis=0) + margin
-        near = np.flatnonzero(np.all((local >= lo) & (local <= hi), axis=1) & ~held)
+        near = ~held
+        if col.closed:  # only nodes in a closed collider's box (grown by the margin) can be inside it or that near
+            lo, hi = col.vertices.min(axis=0) - margin, col.vertices.max(axis=0) + margin
+            near &= np.all((local >= lo) & (local <= hi), axis=1)
+        # (an open sheet is one-sided: everything behind it, as far as the query reaches, is inside)
+        near = np.flatnonzero(near)
         where = query_device(self._device, len(near))
         hit, face, bary, nrm = nearest_faces(col.device_mesh(where), local[near], col.extent, margin, where,
                                              closed=col.inside_test)
