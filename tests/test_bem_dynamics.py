@@ -446,18 +446,20 @@ def test_device_step_matches_the_host_path(device, ops_cache):
     assert np.max(np.abs(ua - ub)) < 1e-9 * np.max(np.abs(ub))
 
 
-@pytest.mark.parametrize("bodies", [1, 2])
+@pytest.mark.parametrize("bodies", [1, 2, "set"])
 def test_device_steps_hand_over_to_the_contact_solve(device, ops_cache, bodies):
     """Balls dropped onto the ground (the second onto the first): free flight runs on the device
     (``BemBody.device_window``) until the bound on their motion brings them within reach of the
     ground or each other, then the constraint solve takes over. Fall, landing, bounce and the
-    impact between the balls follow the all-host run to round-off."""
+    impact between the balls follow the all-host run to round-off. "set": the two balls on one
+    operator set (an instance set on CUDA with CuPy, whose small members step on the device one
+    body at a time, ``Instances.steps_apart``)."""
     ops = ops_cache(1, 10, "float64")
-    # the second ball on operators of its own: balls on one set step as an instance set (CUDA with
-    # CuPy), which keeps the host path
-    meshes = [sphere(1), trimesh.creation.icosphere(subdivisions=1, radius=0.9 * RADIUS)]
-    sets = [ops] + ([build_operators(meshes[1], MAT, ops.dt, precision="float64", cache=False, device="cpu")]
-                    if bodies == 2 else [])
+    same = bodies == "set"
+    bodies = 2 if same else bodies
+    meshes = [sphere(1), sphere(1) if same else trimesh.creation.icosphere(subdivisions=1, radius=0.9 * RADIUS)]
+    sets = [ops] + ([ops if same else build_operators(meshes[1], MAT, ops.dt, precision="float64", cache=False,
+                                                      device="cpu")] if bodies == 2 else [])
     runs = []
     for on_device in (True, False):
         world = wsim.World(fps=50, device=device, gravity=(0.0, -9.81, 0.0))

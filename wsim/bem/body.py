@@ -922,7 +922,8 @@ class BemBody(VertexImpulses, Body):
         """Whether this body's free steps can run on the device (``device_step``; ``wsim.bem.device_step``)."""
         so = self._so
         return (self.device_step and not self.profile and so.backend == "warp" and so.packed is None
-                and so.compressed is None and self.error_correction and not self._fixed and self._set is None
+                and so.compressed is None and self.error_correction and not self._fixed
+                and (self._set is None or self._set.steps_apart)
                 and self._predicted is None)
 
     @staticmethod

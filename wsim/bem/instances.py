@@ -36,6 +36,8 @@ from wsim.kernels import bem_step as ks
 if TYPE_CHECKING:
     from wsim.bem.body import BemBody
 
+DEVICE_APART_BYTES = 256 << 20  # see ``Instances.steps_apart``
+
 
 class Instances:
     """K >= 2 bound BEM bodies on one ``StepOperators``: their stacked rings and step vectors."""
@@ -58,6 +60,16 @@ class Instances:
         for i, b in enumerate(self.bodies):
             b._adopt_rings(self.U[i], self.P[i], self.B[i], self.p[i], self.h[i], self.u[i])
             b._set = self
+
+    @property
+    def steps_apart(self) -> bool:
+        """Whether the members' free steps may run on the device one body at a time
+        (``BemBody.device_window``, ``wsim.bem.device_step``): dense Warp operators small enough
+        that reading them once per member (``DEVICE_APART_BYTES`` for all members together, about
+        0.1 ms of an H100's bandwidth) costs less than the set's host round trip."""
+        so = self.so
+        return (so.backend == "warp" and so.packed is None and so.compressed is None
+                and len(self.bodies) * so.matrix_bytes <= DEVICE_APART_BYTES)
 
     def predict(self, bodies: Sequence[BemBody]) -> None:
         """The coming step's unconstrained solve of ``bodies`` (members of the set that step now;
@@ -106,6 +118,13 @@ class Instances:
             live = [b for b in self.bodies if not b.failed and b.steps < target]
             if not live:
                 return
+            # free steps on which nothing can reach any member run on the device, body by body
+            together = all(b.steps == live[0].steps for b in live)
+            k = type(live[0]).device_window(live, target) if together and self.steps_apart else 0
+            if k:
+                for b in live:
+                    b._device_steps(b.steps + k)
+                continue
             self.predict(live)
             free = [b for b in live if not b.constrained and b.frame_update and b.error_correction]
             for b in live:
