@@ -181,6 +181,7 @@ def body_contact(
     margin: float,
     max_dist: float,
     mu: float,
+    closed: int,
 ):
     """A surface particle p of body A against the surface of body B (``mesh``: B's current surface
     positions and triangles): the point-triangle contact constraint
@@ -191,11 +192,12 @@ def body_contact(
     opposite momenta, and the arm p - s along n (no torque error). Coulomb friction as against a
     collider, on the slip of p relative to s over the substep, divided between the bodies the same
     way. One thread per particle of A; B's particles take atomic adds (several of A's particles
-    may press on one triangle of B)."""
+    may press on one triangle of B). ``closed``: B's inside test (``wsim.mesh.inside_test``: ray
+    parity for one watertight piece, else the winding number)."""
     i = wp.tid()
     w_p = inv_mass[i]
     p = x_pred[i] + dx[i]
-    depth, s, n, face, b = surface_contact(mesh, p, max_dist, margin, 1)
+    depth, s, n, face, b = surface_contact(mesh, p, max_dist, margin, closed)
     if depth <= 0.0:
         return
     tri = face_vertices(mesh, face)
@@ -238,18 +240,20 @@ def moving_surface_contact(
     mu: float,
     inv_h: float,
     impulse: wp.array(dtype=wp.vec3d),
+    closed: int,
 ):
     """A particle against another body's surface that moves on its own this frame (``mesh``: its
     vertices at the end of the substep; ``v_prev`` at the start): the collider projection with
     friction relative to the surface's motion, and the momentum the particle received,
     m (dx change) / h, taken from the surface's vertices by their barycentric weights into
-    ``impulse`` [N s] (handed to the other body by the World: explicit two-way coupling)."""
+    ``impulse`` [N s] (handed to the other body by the World: explicit two-way coupling).
+    ``closed``: the surface's inside test (``wsim.mesh.inside_test``)."""
     i = wp.tid()
     w_p = inv_mass[i]
     if w_p == 0.0:
         return
     p = x_pred[i] + dx[i]
-    depth, s, n, face, b = surface_contact(mesh, p, max_dist, margin, 1)
+    depth, s, n, face, b = surface_contact(mesh, p, max_dist, margin, closed)
     if depth <= 0.0:
         return
     tri = face_vertices(mesh, face)
