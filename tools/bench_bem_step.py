@@ -13,6 +13,9 @@ spinning and pushed by a traction pulse is stepped
   World frame has), per step on the host path (``device_step=False``), and per unconstrained solve
   alone (``BemBody.unconstrained_solve``: history, loads, Eq. 12 and the copy of u_n to the host);
   and the device path's end state against the host path's after the same steps from the start;
+* ``world_drop``: the body dropped onto a ground plane in a World at 30 fps, device steps on
+  and off (``BemBody.device_window`` hands the fall to the device and the landing to the
+  constraint solve): seconds per frame, steps taken on the device, the two runs' difference;
 
 and the history matvec alone is timed and compared, in the same run, with the same product through
 torch (``torch.mv`` over the 2 n_max matrices, on the GPU, when torch is importable) and numpy BLAS
