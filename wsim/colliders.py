@@ -174,7 +174,16 @@ class MeshCollider(Collider):
             np.eye(4) if transform is None else transform, name, None
         )
         self._device_meshes: dict[str, wp.Mesh] = {}
-        self.extent = float(np.linalg.norm(self.vertices.max(0) - self.vertices.min(0)))
+        # the vertices' box and a ball around them, in the mesh's own axes (broad phases)
+        self.local_box = (self.vertices.min(axis=0), self.vertices.max(axis=0))
+        self.extent = float(np.linalg.norm(self.local_box[1] - self.local_box[0]))
+        self._centre = 0.5 * (self.local_box[0] + self.local_box[1])
+        self.radius = float(np.sqrt(((self.vertices - self._centre) ** 2).sum(axis=1).max()))
+
+    def ball(self, t: float) -> tuple[np.ndarray, float]:
+        """(world centre, radius) of a ball holding the mesh at time t (a rigid pose keeps the radius)."""
+        M = self.matrix(t)
+        return M[:3, :3] @ self._centre + M[:3, 3], self.radius
 
     def matrix(self, t: float) -> np.ndarray:
         """Local-to-world 4x4 matrix at time t [s]."""

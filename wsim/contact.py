@@ -70,6 +70,9 @@ def nearest_faces(mesh: wp.Mesh, points: np.ndarray, reach: float, margin: float
     return hit, f[hit], values[:k][hit], values[k:][hit]
 
 
+HOST_QUERY_POINTS = 64  # see ``query_device``
+
+
 def query_device(device: wp.Device | str, points: int) -> wp.Device:
     """Where a query of ``points`` points runs: the CPU for fewer than ``HOST_QUERY_POINTS``. Each
     point is one thread's serial walk of a BVH, so a GPU launch costs its latency whatever the
@@ -78,9 +81,6 @@ def query_device(device: wp.Device | str, points: int) -> wp.Device:
     the points and results where they are, on the host."""
     device = wp.get_device(device)
     return device if device.is_cpu or points >= HOST_QUERY_POINTS else wp.get_device("cpu")
-
-
-HOST_QUERY_POINTS = 64
 
 
 def points_inside(points: np.ndarray, V: np.ndarray, faces: np.ndarray, margin: float,

@@ -441,13 +441,10 @@ def _advance_group(bodies: list[Body], joints: list, t1: float, device, contact:
     tol = min(b.constraint_tolerance for b in bodies)
     iterations = max(b.constraint_iterations for b in bodies)
     margin = min(b.contact_distance for b in bodies) if contact else None
-    window = getattr(type(bodies[0]), "device_window", None)
+    on_device = getattr(type(bodies[0]), "steps_on_device", None)
     while bodies[0].steps < target and not any(b.failed for b in bodies):
         # steps on which nothing can touch (and no joint holds) run on the device (``BemBody.device_window``)
-        k = window(bodies, target) if window is not None and not joints else 0
-        if k:
-            for b in bodies:
-                b._device_steps(b.steps + k)
+        if on_device is not None and not joints and on_device(bodies, target):
             continue
         for s in sets:
             s.predict(s.bodies)

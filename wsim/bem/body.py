@@ -18,6 +18,7 @@ Warp backend (``device_step``), where 4 and 5 run on the device too (``wsim.bem.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 import warnings
@@ -266,9 +267,6 @@ class BemBody(VertexImpulses, Body):
         self._mesh = (vertices, faces)
         self._faces = faces.astype(np.int32)
         self._surface = surface
-        # contact's inside test of the node faces (ray parity for one watertight piece; double
-        # nodes leave cracks in the node faces, which the winding number does not mind)
-        self._inside_test = wmesh.inside_test(surface.faces)
         self._props = props
         self._R0 = R0
         self._T0 = props.com + as_vec3(position, f"body '{name}': position")  # rotation is about the com
@@ -298,6 +296,13 @@ class BemBody(VertexImpulses, Body):
         self._coupling_load = False  # whether add_vertex_impulses' load is registered
         self.constraint_history: list[wc.SolveRecord] = []  # diagnostics of every constrained step (not state)
         self.unconverged_steps = 0
+
+    @functools.cached_property
+    def _inside_test(self) -> int:
+        """Contact's inside test of the node faces (ray parity for one watertight piece; double
+        nodes leave cracks in the node faces, which the winding number does not mind); made on
+        the first contact query."""
+        return wmesh.inside_test(self._surface.faces)
 
     # -- public read-outs -------------------------------------------------------------------
     @property
@@ -700,8 +705,8 @@ class BemBody(VertexImpulses, Body):
         local = (V - M[:3, 3]) @ np.linalg.inv(M[:3, :3]).T
         near = ~held
         if col.closed:  # only nodes in a closed collider's box (grown by the margin) can be inside it or that near
-            lo, hi = col.vertices.min(axis=0) - margin, col.vertices.max(axis=0) + margin
-            near &= np.all((local >= lo) & (local <= hi), axis=1)
+            lo, hi = col.local_box
+            near &= np.all((local >= lo - margin) & (local <= hi + margin), axis=1)
         # (an open sheet is one-sided: everything behind it, as far as the query reaches, is inside)
         near = np.flatnonzero(near)
         where = query_device(self._device, len(near))
@@ -889,10 +894,7 @@ class BemBody(VertexImpulses, Body):
             return
         target = int(math.floor(t1 / self.dt + 0.5))
         while self.state.steps < target:
-            window = BemBody.device_window([self], target)
-            if window:
-                self._device_steps(self.state.steps + window)
-            else:
+            if not BemBody.steps_on_device([self], target):
                 self.step()
             if self._failure is not None:
                 return
@@ -905,8 +907,7 @@ class BemBody(VertexImpulses, Body):
     # -- the step -----------------------------------------------------------------------------
     def step(self) -> None:
         """One step of length dt (Eqs. 9-12, Sec. 3.2.1, Eq. 11)."""
-        if BemBody.device_window([self], self.steps + 1):
-            self._device_steps(self.steps + 1)
+        if BemBody.steps_on_device([self], self.steps + 1):
             return
         if self.constrained:
             # On a constrained step the error correction moves u's rigid drift into the frame's pose
@@ -927,6 +928,16 @@ class BemBody(VertexImpulses, Body):
                 and self._predicted is None)
 
     @staticmethod
+    def steps_on_device(bodies: Sequence[BemBody], target: int) -> bool:
+        """Take the steps towards ``target`` that ``device_window`` allows ``bodies`` (stepping
+        together) on the device, each body its own; False when it allows none."""
+        k = BemBody.device_window(bodies, target)
+        for b in bodies:
+            if k:
+                b._device_steps(b.steps + k)
+        return k > 0
+
+    @staticmethod
     def device_window(bodies: Sequence[BemBody], target: int) -> int:
         """How many of the steps up to ``target`` ``bodies`` (stepping together) can take on the
         device: steps on which, by a bound on their motion, no node of any of them can come
@@ -945,14 +956,14 @@ class BemBody(VertexImpulses, Body):
             return 0
         reach = [b._reach() for b in bodies]
         gaps: list[tuple[float, float, float]] = []  # (distance, speed bound, acceleration bound)
-        for b, (T, rho, slack, a, acc) in zip(bodies, reach):
-            found = b._collider_gaps(T, rho)
+        for b, (T, rho, slack, a, acc, lever) in zip(bodies, reach):
+            found = b._collider_gaps(T, rho, lever)
             if found is None:
                 return 0
             gaps += [(d - slack, a, acc) for d in found]
         for i in range(len(bodies)):
             for j in range(i + 1, len(bodies)):
-                (Ti, ri, si, ai, bi), (Tj, rj, sj, aj, bj) = reach[i], reach[j]
+                (Ti, ri, si, ai, bi, _), (Tj, rj, sj, aj, bj, _) = reach[i], reach[j]
                 gaps.append((float(np.linalg.norm(Ti - Tj)) - ri - rj - si - sj, ai + aj, bi + bj))
         if not gaps:
             return todo
@@ -967,37 +978,33 @@ class BemBody(VertexImpulses, Body):
             todo = min(todo, int(tau / dt))
         return max(todo, 0)
 
-    def _reach(self) -> tuple[np.ndarray, float, float, float, float]:
-        """(centre T, radius rho, slack, speed bound, acceleration bound) of ``device_window``."""
+    def _reach(self) -> tuple[np.ndarray, float, float, float, float, np.ndarray]:
+        """(centre T, radius rho, slack, speed bound, acceleration bound, the nodes' lever arms
+        about T (N, 3), world axes) of ``device_window``."""
         st, ops = self.state, self._so.operators
         f = st.frame
-        u = st.u.reshape(-1, 3)
-        lever = (ops.surface.nodes - ops.com + u) @ f.R.T
+        lever = (ops.surface.nodes - ops.com + st.u.reshape(-1, 3)) @ f.R.T
         rho = float(np.sqrt((lever * lever).sum(axis=1).max()))
         peak = max(st.window_peak, st.window_previous, float(np.abs(st.u).max(initial=0.0)))
         slack = self.contact_distance + 2.0 * peak + 0.05 * ops.r_max
         speed = float(np.linalg.norm(f.velocity)) + float(np.linalg.norm(f.omega)) * rho
-        return f.T.copy(), rho, slack, speed, 0.5 * float(np.linalg.norm(self._gravity))
+        return f.T.copy(), rho, slack, speed, 0.5 * float(np.linalg.norm(self._gravity)), lever
 
-    def _collider_gaps(self, T: np.ndarray, rho: float) -> list[float] | None:
+    def _collider_gaps(self, T: np.ndarray, rho: float, lever: np.ndarray) -> list[float] | None:
         """The body's distance to each collider (see ``device_window``); None with a kinematic mesh."""
         surfaces = self._surfaces
         if surfaces is None:
             return []
         out = []
-        X = None
         for ci, col in enumerate(surfaces):
             plane = surfaces.plane(ci)
             if plane is not None:
-                if X is None:
-                    st, ops = self.state, self._so.operators
-                    X = (ops.surface.nodes - ops.com + st.u.reshape(-1, 3)) @ st.frame.R.T + st.frame.T
                 n, h = plane
-                out.append(float((X @ n - h).min()))
+                out.append(float((lever @ n).min() + T @ n - h))
             elif col.kinematic:
                 return None
             else:
-                c, r = _collider_ball(col)
+                c, r = col.ball(0.0)
                 out.append(float(np.linalg.norm(T - c)) - rho - r)
         return out
 
@@ -1252,12 +1259,3 @@ class BemBody(VertexImpulses, Body):
         if peak > self.divergence_limit:
             self._failure = ("displacement", f"|u| = {peak:.3g} m exceeds divergence_limit = "
                              f"{self.divergence_limit:.3g} m at {when}", "diverging")
-
-
-def _collider_ball(col: Any) -> tuple[np.ndarray, float]:
-    """(centre, radius) of a ball around a static mesh collider's vertices (world)."""
-    M = col.matrix(0.0)
-    x = col.vertices @ M[:3, :3].T + M[:3, 3]
-    c = 0.5 * (x.min(axis=0) + x.max(axis=0))
-    return c, float(np.sqrt(((x - c) ** 2).sum(axis=1).max()))
-

@@ -120,10 +120,7 @@ class Instances:
                 return
             # free steps on which nothing can reach any member run on the device, body by body
             together = all(b.steps == live[0].steps for b in live)
-            k = type(live[0]).device_window(live, target) if together and self.steps_apart else 0
-            if k:
-                for b in live:
-                    b._device_steps(b.steps + k)
+            if together and self.steps_apart and type(live[0]).steps_on_device(live, target):
                 continue
             self.predict(live)
             free = [b for b in live if not b.constrained and b.frame_update and b.error_correction]
