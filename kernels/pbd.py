@@ -107,6 +107,28 @@ def project4(
 
 
 @wp.kernel
+def handle_targets(
+    rest: wp.array(dtype=wp.vec3d),
+    handle: wp.array(dtype=wp.int32),
+    mats: wp.array(dtype=wp.mat44d),
+    n_handles: int,
+    out: wp.array(dtype=wp.vec3),
+):
+    """Targets of rigidly moved handles: thread s k + j (k handle slots) sets slot j at substep s to
+    R p + t, p its rest position and [R t] the 4x4 pose of its handle at that substep
+    (mats[s n_handles + handle]), in float64 like the host evaluation it replaces, stored float32."""
+    i = wp.tid()
+    k = rest.shape[0]
+    s = i // k
+    j = i - s * k
+    M = mats[s * n_handles + int(handle[j])]
+    p = rest[j]
+    out[i] = wp.vec3(wp.vec3d(M[0, 0] * p[0] + M[0, 1] * p[1] + M[0, 2] * p[2] + M[0, 3],
+                              M[1, 0] * p[0] + M[1, 1] * p[1] + M[1, 2] * p[2] + M[1, 3],
+                              M[2, 0] * p[0] + M[2, 1] * p[1] + M[2, 2] * p[2] + M[2, 3]))
+
+
+@wp.kernel
 def predict_positions(
     # state in/out
     x: wp.array(dtype=wp.vec3),

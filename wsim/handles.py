@@ -43,9 +43,13 @@ class Handle:
         ``what`` names the handle in error messages (default ``handle '<name>' motion``; a body
         passes ``body 'neck': handle 'tip' (handles[0]) motion``) and ``frame`` is the World frame
         being computed, so a bad motion is reported with the body, the frame and the time."""
-        what = what or f"handle '{self.name}' motion"
-        a = callback_array(call_user(self.motion, t, what, frame), ((4, 4), rest.shape), what, t, frame)
+        a = self.pose(t, rest.shape, what, frame)
         return rest @ a[:3, :3].T + a[:3, 3] if a.shape == (4, 4) else a
+
+    def pose(self, t: float, shape: tuple[int, ...], what: str | None = None, frame: int | None = None) -> np.ndarray:
+        """``motion(t)`` checked (``targets``): a 4x4 matrix, or the ``shape`` (K, 3) positions."""
+        what = what or f"handle '{self.name}' motion"
+        return callback_array(call_user(self.motion, t, what, frame), ((4, 4), shape), what, t, frame)
 
 
 def as_indices(values: Sequence[int] | np.ndarray, what: str) -> np.ndarray:

@@ -566,7 +566,14 @@ class PbdBody(Body):
             if self.handles:
                 k = len(self._handle_idx)
                 self._handle_targets_d = wp.zeros(substeps * k, dtype=wp.vec3)
-                self._handle_targets_h = wp.zeros(substeps * k, dtype=wp.vec3, device="cpu", pinned=device.is_cuda)
+                self._handle_targets_h = None  # made on the first frame whose motions are not all matrices
+                # rigid motions (4x4 matrices) are applied on the device: only the matrices travel
+                H = len(self.handles)
+                self._handle_mats_d = wp.zeros(substeps * H, dtype=wp.mat44d)
+                self._handle_mats_h = wp.zeros(substeps * H, dtype=wp.mat44d, device="cpu", pinned=device.is_cuda)
+                self._handle_rest_d = wp.array(self._rest[self._handle_idx], dtype=wp.vec3d)
+                self._handle_of_slot_d = wp.array(
+                    np.repeat(np.arange(H), [len(hd.vertices) for hd in self.handles]).astype(np.int32), dtype=wp.int32)
             self._mesh_colliders = []
             for i in self._mesh_surfaces:
                 c = self._surfaces[i]
@@ -629,14 +636,31 @@ class PbdBody(Body):
         """Copy this frame's handle targets and collider poses into the fixed device buffers."""
         if self.handles:
             rest = self._rest
-            host = self._handle_targets_h.numpy()
             k = len(self._handle_idx)
+            poses = []
             for s in range(substeps):
                 t = t0 + (s + 1) * h
                 frame = self._frame_of(t)
-                host[s * k : (s + 1) * k] = np.concatenate(
-                    [hd.targets(t, rest[hd.vertices], what, frame) for hd, what in zip(self.handles, self._handle_labels)])
-            wp.copy(self._handle_targets_d, self._handle_targets_h)
+                poses.append([hd.pose(t, (len(hd.vertices), 3), what, frame)
+                              for hd, what in zip(self.handles, self._handle_labels)])
+            if all(a.shape == (4, 4) for row in poses for a in row):
+                # rigid motions: the S x H matrices go to the device, which poses the rest positions
+                mats = self._handle_mats_h.numpy()
+                mats[:] = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+                wp.copy(self._handle_mats_d, self._handle_mats_h)
+                wp.launch(kp.handle_targets, dim=substeps * k,
+                          inputs=[self._handle_rest_d, self._handle_of_slot_d, self._handle_mats_d, len(self.handles),
+                                  self._handle_targets_d])
+            else:
+                if self._handle_targets_h is None:
+                    self._handle_targets_h = wp.zeros(substeps * k, dtype=wp.vec3, device="cpu",
+                                                      pinned=self._device.is_cuda)
+                host = self._handle_targets_h.numpy()
+                for s, row in enumerate(poses):
+                    host[s * k : (s + 1) * k] = np.concatenate(
+                        [rest[hd.vertices] @ a[:3, :3].T + a[:3, 3] if a.shape == (4, 4) else a
+                         for hd, a in zip(self.handles, row)])
+                wp.copy(self._handle_targets_d, self._handle_targets_h)
         for dc in self._mesh_colliders:
             for s in range(substeps + 1):
                 M = self._surfaces.matrix(dc.index, t0 + s * h)
