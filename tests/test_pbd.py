@@ -8,7 +8,7 @@ import trimesh
 
 import wsim
 from wsim import mesh as wmesh
-from wsim.colouring import colour_constraints, is_valid_colouring
+from wsim.colouring import colour_constraints, colour_smallest_last, is_valid_colouring
 
 G = 9.81
 
@@ -310,6 +310,65 @@ def test_colouring_is_race_free():
     assert sorted(order.tolist()) == list(range(len(hinges)))
     # a deliberately bad colouring is caught by the checker
     assert not is_valid_colouring(hinges, np.array([0, len(hinges)]))
+
+
+def test_smallest_last_colouring_is_race_free_and_needs_no_more_colours():
+    """The PBD models' colouring (greedy in smallest-last order): valid, every constraint once,
+    deterministic, and no more colours than the Luby rounds on the hinges of a sphere and the
+    edges and tets of a 5-tet grid, where the degeneracy bound gives it fewer."""
+    faces = wmesh.bumpy_sphere(subdivisions=2).faces
+    hinges = wmesh.hinges(faces)
+    g = np.stack(np.meshgrid(*[np.arange(5)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    vid = {tuple(p): i for i, p in enumerate(g)}
+    tets = []
+    for i, j, k in g[(g < 4).all(axis=1)]:
+        v = [vid[(i + a, j + b, k + c)] for a in (0, 1) for b in (0, 1) for c in (0, 1)]
+        pattern = ([(0, 1, 2, 4), (1, 2, 3, 7), (1, 4, 5, 7), (2, 4, 6, 7), (1, 2, 4, 7)] if (i + j + k) % 2 == 0
+                   else [(0, 1, 3, 5), (0, 2, 3, 6), (0, 4, 5, 6), (3, 5, 6, 7), (0, 3, 5, 6)])
+        tets += [[v[a] for a in t] for t in pattern]
+    tets = np.array(tets)
+    edges = np.unique(np.sort(np.concatenate([tets[:, p] for p in ([0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3])]),
+                              axis=1), axis=0)
+    for idx, n in ((hinges, faces.max() + 1), (tets, len(g)), (edges, len(g))):
+        order, offsets = colour_smallest_last(idx, n)
+        assert is_valid_colouring(idx[order], offsets)
+        assert sorted(order.tolist()) == list(range(len(idx)))
+        again, _ = colour_smallest_last(idx, n)
+        assert np.array_equal(order, again)
+        assert len(offsets) - 1 <= len(colour_constraints(idx, n)[1]) - 1
+    assert len(colour_smallest_last(tets, len(g))[1]) < len(colour_constraints(tets, len(g))[1])
+
+
+def test_pinned_constraints_are_not_projected(monkeypatch):
+    """A family keeps only the constraints with a free particle (``ConstraintFamily.active``), in
+    its colour order, without empty colours; the body projects exactly those and its trajectory
+    is the one with every constraint projected, bit for bit (a constraint on pinned particles
+    only moves nothing)."""
+    from wsim.pbd.model import ConstraintFamily
+
+    mesh = wmesh.beam(length=1.0, width=0.1, height=0.1, divisions=(12, 2, 2))
+    v = np.asarray(mesh.vertices)
+    pinned = np.flatnonzero(v[:, 0] < 0.35)  # the beam runs from x = 0 to 1
+
+    def run() -> tuple[np.ndarray, wsim.PbdBody]:
+        world = wsim.World(device="cpu")
+        body = world.add(wsim.PbdBody(mesh, name="beam", pinned=pinned, tets="auto", cache=False))
+        for _ in range(10):
+            world.step()
+        return body.particles(), body
+
+    x_active, body = run()
+    kin = body._kinematic_mask
+    for f, a in zip(body.model.families, body._active_families):
+        keep = ~np.all(kin[f.indices], axis=1)
+        assert 0 < a.count < f.count and a.count == keep.sum()
+        assert np.array_equal(a.indices, f.indices[keep]) and np.all(np.diff(a.offsets) > 0)
+        assert is_valid_colouring(a.indices, a.offsets) and a.colours <= f.colours
+    with monkeypatch.context() as mp:  # every constraint projected, as before
+        mp.setattr(ConstraintFamily, "active", lambda self, kinematic: self)
+        x_all, full = run()
+    assert sum(f.count for f in full._active_families) == sum(f.count for f in body.model.families)
+    assert np.array_equal(x_all, x_active)
 
 
 def test_cpu_serial_sweep_equals_per_colour_launches():

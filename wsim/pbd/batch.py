@@ -112,17 +112,19 @@ class PbdBatch:
             b._batch_first = int(f)  # its first particle in the batch's arrays
 
     def _merge_families(self, first: np.ndarray) -> list:
-        """The bodies' families of each kind as one, colour c of the batch = colour c of every
-        body, particle indices shifted to the body's range; one multiplier array for them all."""
+        """The bodies' families of each kind as one (the constraints they project,
+        ``PbdBody._active_families``), colour c of the batch = colour c of every body, particle
+        indices shifted to the body's range; one multiplier array for them all."""
         from wsim.pbd.body import _DeviceFamily
 
         # every body projects its families in the model's fixed kind order: the batch keeps it (an
         # order by first appearance would reorder a body's sweep by which bodies came before it)
-        present = {f.kind for b in self.bodies for f in b.model.families}
+        present = {f.kind for b in self.bodies for f in b._active_families}
         kinds = [k for k in FAMILY_KINDS if k in present]
         merged = []
         for kind in kinds:
-            parts = [(b, f, int(base)) for b, base in zip(self.bodies, first) for f in b.model.families if f.kind == kind]
+            parts = [(b, f, int(base)) for b, base in zip(self.bodies, first) for f in b._active_families
+                     if f.kind == kind]
             colours = max(len(f.offsets) - 1 for _, f, _ in parts)
             idx, rest, comp, offsets = [], [], [], [0]
             for c in range(colours):

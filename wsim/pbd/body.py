@@ -501,10 +501,12 @@ class PbdBody(Body):
             self.inv_mass = wp.array(inv_mass.astype(np.float32), dtype=float)
             self.flags = wp.zeros(2, dtype=int)
             # one multiplier array for every family: a single memset per substep resets them all
-            self._lam = wp.zeros(max(sum(f.count for f in m.families), 1), dtype=float)
+            # the constraints a projection can move (``ConstraintFamily.active``); the batch reads them too
+            self._active_families = [a for a in (f.active(self._kinematic_mask) for f in m.families) if a.count]
+            self._lam = wp.zeros(max(sum(f.count for f in self._active_families), 1), dtype=float)
             self._families = []
             start = 0
-            for f in m.families:
+            for f in self._active_families:
                 self._families.append(self._upload_family(f, self._lam[start : start + f.count]))
                 start += f.count
             if m.volume is not None:
@@ -545,8 +547,11 @@ class PbdBody(Body):
         self._layout = None  # rebuild the per-frame buffers and the CUDA graph
 
     def _upload_family(self, f: ConstraintFamily, lam: wp.array) -> _DeviceFamily:
-        count = np.bincount(np.asarray(f.indices).ravel(), minlength=self.model.n_particles) if self.solver == "jacobi" \
-            else np.zeros(1)
+        # Jacobi's scale counts every constraint of the model's family on a particle (the dropped
+        # ones included, so that dropping them changes nothing)
+        full = next(g for g in self.model.families if g.kind == f.kind)
+        count = np.bincount(np.asarray(full.indices).ravel(), minlength=self.model.n_particles) \
+            if self.solver == "jacobi" else np.zeros(1)
         return _DeviceFamily(
             kind=f.kind,
             offsets=f.offsets,

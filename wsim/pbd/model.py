@@ -41,14 +41,15 @@ import numpy as np
 from wsim import mesh as wmesh
 from wsim.errors import InvalidMesh, InvalidParameter
 from wsim.materials import ElasticMaterial
-from wsim.colouring import colour_constraints
+from wsim.colouring import colour_smallest_last
 
 #: Bump whenever the arrays or their meaning change, so cached models are rebuilt.
 #: 2: tets="auto" classifies with the float32 BVH winding-number test of wsim.mesh.inside (was an
 #: exact float64 oracle); equal on every tested shape, but points within ~1e-7 of the size from
 #: the surface may now fall the other way.
 #: 3: tet bodies map E, nu to edge springs s = 15 mu and tet volumes lambda - mu (were E and K).
-MODEL_FORMAT_VERSION = 3
+#: 4: constraints coloured greedily in smallest-last order (``wsim.colouring``; were Luby rounds).
+MODEL_FORMAT_VERSION = 4
 
 FAMILY_KINDS = ("distance", "bending", "tet_volume")
 
@@ -78,6 +79,22 @@ class ConstraintFamily:
     @property
     def colours(self) -> int:
         return int(len(self.offsets) - 1)
+
+    def active(self, kinematic: np.ndarray) -> ConstraintFamily:
+        """The family without its constraints whose particles are all kinematic (pinned or driven:
+        their projection moves nothing, ``kernels.pbd``), in the same colour order, and without
+        the colours that leaves empty: each remaining constraint is projected exactly as before,
+        in the same order, in fewer launches (a pinned region's colours, such as those of a
+        high-valence vertex inside it, cost nothing)."""
+        keep = ~np.all(np.asarray(kinematic, dtype=bool)[self.indices], axis=1)
+        if keep.all():
+            return self
+        colour = np.repeat(np.arange(self.colours), np.diff(self.offsets))
+        counts = np.bincount(colour[keep], minlength=self.colours)
+        counts = counts[counts > 0]
+        return ConstraintFamily(kind=self.kind, indices=self.indices[keep], rest=self.rest[keep],
+                                compliance=self.compliance[keep],
+                                offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64))
 
 
 @dataclass(frozen=True)
@@ -162,7 +179,7 @@ class PbdModel:
 
 
 def _family(kind: str, indices: np.ndarray, rest: np.ndarray, compliance: np.ndarray, n: int) -> ConstraintFamily:
-    order, offsets = colour_constraints(indices, n)
+    order, offsets = colour_smallest_last(indices, n)
     return ConstraintFamily(
         kind=kind,
         indices=np.ascontiguousarray(indices[order], dtype=np.int32),
