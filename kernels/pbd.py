@@ -112,13 +112,14 @@ def handle_targets(
     handle: wp.array(dtype=wp.int32),
     mats: wp.array(dtype=wp.mat44d),
     n_handles: int,
+    first: int,
     out: wp.array(dtype=wp.vec3),
 ):
-    """Targets of rigidly moved handles: thread s k + j (k handle slots) sets slot j at substep s to
-    R p + t, p its rest position and [R t] the 4x4 pose of its handle at that substep
+    """Targets of rigidly moved handles: thread i = (s - first) k + j (k handle slots) sets slot j at
+    substep s to R p + t, p its rest position and [R t] the 4x4 pose of its handle at that substep
     (mats[s n_handles + handle]), in float64 like the host evaluation it replaces, stored float32."""
-    i = wp.tid()
     k = rest.shape[0]
+    i = wp.tid() + first * k
     s = i // k
     j = i - s * k
     M = mats[s * n_handles + int(handle[j])]

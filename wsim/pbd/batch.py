@@ -49,6 +49,9 @@ class PbdBatch:
 
     # the frame's launches are the bodies' own, over the batch's arrays
     _launch_frame = _Body._launch_frame
+    _substep = _Body._substep
+    _load_modules = _Body._load_modules
+    _upload_collider_poses = _Body._upload_collider_poses
     _substep_begin = _Body._substep_begin
     _substep_iteration = _Body._substep_iteration
     _substep_end = _Body._substep_end
@@ -68,6 +71,7 @@ class PbdBatch:
                      "_cpu_serial_sweep", "_block_dim", "_gravity", "_planes", "_surfaces", "_mesh_surfaces"):
             setattr(self, name, getattr(b0, name))
         self.handles = ()
+        self._substep_pipeline = None  # no handles: whole-frame graphs
         self.conserve_angular_momentum = any(b.conserve_angular_momentum for b in bodies)
         block = int(kp.MOMENT_BLOCK)
         counts = np.array([b.model.n_particles for b in bodies])

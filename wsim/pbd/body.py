@@ -364,6 +364,8 @@ class PbdBody(Body):
             self._initial_velocities = vel
         # CPU dispatch: one serial launch per family instead of one per colour (same result, fewer launches)
         self._cpu_serial_sweep = True
+        # a frame with handles substep by substep (``_advance_pipelined``); None: on a GPU with graphs
+        self._substep_pipeline: bool | None = None
         # threads per block of the per-colour launches: measured on an H200 (posed 15k model), 32 gave
         # 3.61 ms/frame, 64: 3.77, 128: 3.88, 256: 4.17 (small latency-bound kernels spread wider)
         self._block_dim = 32
@@ -624,12 +626,17 @@ class PbdBody(Body):
         device = self._device
         # every launch goes to the body's device (Warp's default device may be another one)
         with wp.ScopedDevice(device):
+            pipelined = self._substep_pipeline
+            if pipelined is None:
+                pipelined = device.is_cuda and self.use_graph
+            if pipelined and self.handles:
+                self._advance_pipelined(t0, substeps, h)
+                return
             self._upload_frame_inputs(t0, substeps, h)
             if device.is_cuda and self.use_graph:
                 if self._graph is None:
-                    # compile and load modules outside the capture, then record the frame once
-                    wp.load_module(kp, device=device)
-                    wp.load_module(kc, device=device)
+                    self._load_modules()
+                    # record the frame once
                     with wp.ScopedCapture(device=device) as capture:
                         self._launch_frame(substeps, h)
                     self._graph = capture.graph
@@ -637,35 +644,85 @@ class PbdBody(Body):
             else:
                 self._launch_frame(substeps, h)
 
+    def _load_modules(self) -> None:
+        """Compile and load the kernels' modules outside a CUDA-graph capture."""
+        wp.load_module(kp, device=self._device)
+        wp.load_module(kc, device=self._device)
+
+    def _advance_pipelined(self, t0: float, substeps: int, h: float) -> None:
+        """A frame of a body with handles on a GPU, substep by substep: each substep's handle
+        motions (Python callbacks, ~60 us each for the posed model's head) are evaluated while
+        the GPU runs the substeps before it, and each substep is a recorded CUDA graph. With the
+        whole frame one graph the motions of all substeps ran first, with the GPU idle (0.6 ms a
+        frame of the posed 15k model). A motion that fails leaves the body as the frame found it
+        (positions and velocities restored) and raises, naming the frame."""
+        device = self._device
+        graphs = device.is_cuda and self.use_graph  # elsewhere (tests on the CPU) the same launches
+        if not isinstance(self._graph, list):  # one graph a substep (reset with the frame's graph)
+            if graphs:
+                self._load_modules()
+            self._graph = [None] * substeps
+            self._frame_start = (wp.empty_like(self.state.x), wp.empty_like(self.state.v))
+        self._upload_collider_poses(t0, substeps, h)
+        wp.copy(self._frame_start[0], self.state.x)
+        wp.copy(self._frame_start[1], self.state.v)
+        try:
+            for s in range(1, substeps + 1):
+                self._upload_handle_targets(t0, substeps, h, s - 1, s)
+                if not graphs:
+                    self._substep(s, h)
+                    continue
+                if self._graph[s - 1] is None:
+                    with wp.ScopedCapture(device=device) as capture:
+                        self._substep(s, h)
+                    self._graph[s - 1] = capture.graph
+                wp.capture_launch(self._graph[s - 1])
+        except BaseException:
+            wp.copy(self.state.x, self._frame_start[0])  # after the substeps already launched
+            wp.copy(self.state.v, self._frame_start[1])
+            raise
+
     def _upload_frame_inputs(self, t0: float, substeps: int, h: float) -> None:
         """Copy this frame's handle targets and collider poses into the fixed device buffers."""
         if self.handles:
-            rest = self._rest
-            k = len(self._handle_idx)
-            poses = []
-            for s in range(substeps):
-                t = t0 + (s + 1) * h
-                frame = self._frame_of(t)
-                poses.append([hd.pose(t, (len(hd.vertices), 3), what, frame)
-                              for hd, what in zip(self.handles, self._handle_labels)])
-            if all(a.shape == (4, 4) for row in poses for a in row):
-                # rigid motions: the S x H matrices go to the device, which poses the rest positions
-                mats = self._handle_mats_h.numpy()
-                mats[:] = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
-                wp.copy(self._handle_mats_d, self._handle_mats_h)
-                wp.launch(kp.handle_targets, dim=substeps * k,
-                          inputs=[self._handle_rest_d, self._handle_of_slot_d, self._handle_mats_d, len(self.handles),
-                                  self._handle_targets_d])
-            else:
-                if self._handle_targets_h is None:
-                    self._handle_targets_h = wp.zeros(substeps * k, dtype=wp.vec3, device="cpu",
-                                                      pinned=self._device.is_cuda)
-                host = self._handle_targets_h.numpy()
-                for s, row in enumerate(poses):
-                    host[s * k : (s + 1) * k] = np.concatenate(
-                        [rest[hd.vertices] @ a[:3, :3].T + a[:3, 3] if a.shape == (4, 4) else a
-                         for hd, a in zip(self.handles, row)])
-                wp.copy(self._handle_targets_d, self._handle_targets_h)
+            self._upload_handle_targets(t0, substeps, h, 0, substeps)
+        self._upload_collider_poses(t0, substeps, h)
+
+    def _upload_handle_targets(self, t0: float, substeps: int, h: float, first: int, last: int) -> None:
+        """The handle targets of substeps first .. last - 1 (0-based) of the frame from t0 into
+        their slots of the device buffer (asynchronous on a GPU)."""
+        rest = self._rest
+        k = len(self._handle_idx)
+        H = len(self.handles)
+        poses = []
+        for s in range(first, last):
+            t = t0 + (s + 1) * h
+            frame = self._frame_of(t)
+            poses.append([hd.pose(t, (len(hd.vertices), 3), what, frame)
+                          for hd, what in zip(self.handles, self._handle_labels)])
+        if all(a.shape == (4, 4) for row in poses for a in row):
+            # rigid motions: the matrices go to the device, which poses the rest positions
+            mats = self._handle_mats_h.numpy()
+            mats[first * H : last * H] = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+            wp.copy(self._handle_mats_d, self._handle_mats_h, dest_offset=first * H, src_offset=first * H,
+                    count=(last - first) * H)
+            wp.launch(kp.handle_targets, dim=(last - first) * k,
+                      inputs=[self._handle_rest_d, self._handle_of_slot_d, self._handle_mats_d, H, first,
+                              self._handle_targets_d])
+        else:
+            if self._handle_targets_h is None:
+                self._handle_targets_h = wp.zeros(substeps * k, dtype=wp.vec3, device="cpu",
+                                                  pinned=self._device.is_cuda)
+            host = self._handle_targets_h.numpy()
+            for s, row in zip(range(first, last), poses):
+                host[s * k : (s + 1) * k] = np.concatenate(
+                    [rest[hd.vertices] @ a[:3, :3].T + a[:3, 3] if a.shape == (4, 4) else a
+                     for hd, a in zip(self.handles, row)])
+            wp.copy(self._handle_targets_d, self._handle_targets_h, dest_offset=first * k, src_offset=first * k,
+                    count=(last - first) * k)
+
+    def _upload_collider_poses(self, t0: float, substeps: int, h: float) -> None:
+        """The mesh colliders' poses at the frame's substep boundaries into their device buffers."""
         for dc in self._mesh_colliders:
             for s in range(substeps + 1):
                 M = self._surfaces.matrix(dc.index, t0 + s * h)
@@ -701,10 +758,14 @@ class PbdBody(Body):
 
     def _launch_frame(self, substeps: int, h: float) -> None:
         for s in range(1, substeps + 1):
-            self._substep_begin(s, h)
-            for it in range(self.iterations):
-                self._substep_iteration(s, it, h)
-            self._substep_end(h)
+            self._substep(s, h)
+
+    def _substep(self, s: int, h: float) -> None:
+        """Substep s (1-based) of length h: prediction, the iterations, the velocity update."""
+        self._substep_begin(s, h)
+        for it in range(self.iterations):
+            self._substep_iteration(s, it, h)
+        self._substep_end(h)
 
     def _substep_begin(self, s: int, h: float) -> None:
         """Substep s (1-based) of length h: predict positions, reset the multipliers."""
