@@ -403,6 +403,34 @@ def test_a_non_finite_history_stops_the_body_at_its_step(ops_cache, device_step)
     assert np.all(np.isfinite(body.frame.T)) and np.all(np.isfinite(body.frame.velocity))  # no correction of NaN
 
 
+def test_growth_stop_on_the_device_path_is_at_its_step(ops_cache, monkeypatch):
+    """The growth check runs on the device batch's log after the batch: a batch ends where the
+    check could first stop the body, so a body it stops is left at the step the message names.
+    The log's peaks are replaced by a mode growing 30 % a window (a real one takes thousands of
+    steps to show): counted from the second window boundary, the fifth growing window ends at
+    6 windows."""
+    from wsim.bem.device_step import ResidentStep
+
+    ops = ops_cache(1, 10)
+    world, body = make_body(ops, sphere(1), name="ringer", matvec="warp")
+    L = body._window_length
+    real = ResidentStep.read_log
+
+    def growing_log(self):
+        log = real(self)
+        first = body.state.steps - len(log)  # the batch's steps are first + 1 .. body.state.steps
+        log[:, 0] = 1e-6 * 1.3 ** ((np.arange(first + 1, first + 1 + len(log)) - 1) // L)
+        return log
+
+    monkeypatch.setattr(ResidentStep, "read_log", growing_log)
+    body.advance(0.0, (6 * L + 300) * ops.dt)
+    assert body.failed and body._failure[2] == "growing"
+    assert body.steps == 6 * L
+    with pytest.raises(wsim.SimulationDiverged, match="ringer.*growing") as err:
+        body.check_finite(1, body.time)
+    assert f"at step {6 * L} " in str(err.value)
+
+
 def test_device_step_matches_the_host_path(device, ops_cache):
     """A free step kept on the device (``wsim.bem.device_step``: correction and frame update in one
     float64 kernel, CUDA graphs, one read-back per advance) follows the host path's numpy correction

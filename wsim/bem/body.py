@@ -932,10 +932,20 @@ class BemBody(VertexImpulses, Body):
         """Take the steps towards ``target`` that ``device_window`` allows ``bodies`` (stepping
         together) on the device, each body its own; False when it allows none."""
         k = BemBody.device_window(bodies, target)
+        # a batch ends where the growth check could first stop a body, so that a body it stops
+        # is left at the step it names (the checks run on the batch's log after the batch)
+        k = min([k] + [b._growth_horizon() - b.steps for b in bodies if b.growth_check])
         for b in bodies:
             if k:
                 b._device_steps(b.steps + k)
         return k > 0
+
+    def _growth_horizon(self) -> int:
+        """The first step at which the growth check (``_check_growth``) could stop this body: the
+        (5 - g)-th window boundary from now, g the windows already counted growing (it counts at
+        most one a boundary and stops at five)."""
+        L = self._window_length
+        return (self.state.steps // L + 5 - self.state.window_growing) * L
 
     @staticmethod
     def device_window(bodies: Sequence[BemBody], target: int) -> int:
@@ -1067,6 +1077,8 @@ class BemBody(VertexImpulses, Body):
             if self._failure is not None:
                 if self._failure[2] != "growing":  # the device stopped at this step (``correct_step``'s halt)
                     st.steps, st.ring = first + k + 1, ring + k + 1
+                # (a growing body's batch ended at the first step its check could fail on,
+                # ``steps_on_device``: the state is that step's)
                 break
         self._tick("device", t0)
 
