@@ -429,6 +429,12 @@ def test_growth_stop_on_the_device_path_is_at_its_step(ops_cache, monkeypatch):
     with pytest.raises(wsim.SimulationDiverged, match="ringer.*growing") as err:
         body.check_finite(1, body.time)
     assert f"at step {6 * L} " in str(err.value)
+    # the horizon: the (5 - g)-th window boundary ahead, at least the next one (a checkpoint may
+    # hold a count of 5 or more once the failure is cleared by a restore)
+    for steps, g, horizon in ((0, 0, 5 * L), (L - 1, 0, 5 * L), (L, 0, 6 * L), (3 * L + 1, 3, 5 * L),
+                              (3 * L + 1, 4, 4 * L), (3 * L, 5, 4 * L), (3 * L + 2, 7, 4 * L)):
+        body.state.steps, body.state.window_growing = steps, g
+        assert body._growth_horizon() == horizon
 
 
 def test_device_step_matches_the_host_path(device, ops_cache):

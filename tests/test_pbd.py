@@ -178,33 +178,48 @@ def test_pinned_and_handles_follow_exactly(device):
 
 
 def test_rigid_handle_posed_on_device_matches_positions(device):
-    """A handle whose motion is a 4x4 matrix is posed on the device (only the matrices travel);
-    the same motion given as target positions is posed on the host: the two bodies' particles
-    agree to float32 rounding, and the handle follows its rotation about a moving axis."""
+    """Handles whose motions are 4x4 matrices are posed on the device (only the matrices travel);
+    the same motions given as target positions are posed on the host: the bodies' particles agree
+    to float32 rounding, substep by substep and with the whole frame's motions evaluated first,
+    with two handles on a body placed with ``position=``, and the handles follow their motions."""
     mesh = wmesh.beam(length=1.0, width=0.1, height=0.1, divisions=(10, 1, 1))
     v = np.asarray(mesh.vertices)
     left = np.flatnonzero(v[:, 0] < v[:, 0].min() + 1e-6)
     right = np.flatnonzero(v[:, 0] > v[:, 0].max() - 1e-6)
+    shift = np.array([0.0, 0.0, 1.0])
 
-    def pose(t: float) -> np.ndarray:
+    def turn(t: float) -> np.ndarray:  # about the z axis through the world origin
         a = 2.0 * t
         m = np.eye(4)
         m[:3, :3] = [[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]]
         m[:3, 3] = [0.1 * t, 0.2 * t, 0.0]
         return m
 
-    def positions(t: float) -> np.ndarray:  # of the second body, 1 m above (R leaves z alone)
-        m = pose(t)
-        return v[right] @ m[:3, :3].T + m[:3, 3] + [0.0, 0.0, 1.0]
+    def lift(t: float) -> np.ndarray:
+        m = np.eye(4)
+        m[1, 3] = -0.3 * t
+        return m
 
-    world = wsim.World(device=device)
-    rigid = world.add(wsim.PbdBody(mesh, name="rigid", pinned=left, handles=[wsim.Handle(right, pose)], tets="auto"))
-    given = world.add(wsim.PbdBody(mesh, name="given", pinned=left, handles=[wsim.Handle(right, positions)],
-                                   tets="auto", position=(0.0, 0.0, 1.0)))
-    for _ in range(6):
-        world.step()
-    np.testing.assert_allclose(rigid.particles()[right], positions(world.time) - [0.0, 0.0, 1.0], atol=1e-6)
-    np.testing.assert_allclose(rigid.particles(), given.particles() - [0.0, 0.0, 1.0], atol=2e-6)
+    def as_positions(motion, idx):  # the same motion as targets of the body placed at ``shift``
+        return lambda t: (v[idx] + shift) @ motion(t)[:3, :3].T + motion(t)[:3, 3]
+
+    def run(given: bool, pipelined: bool | None) -> wsim.PbdBody:
+        world = wsim.World(device=device)
+        handles = ([wsim.Handle(right, as_positions(turn, right)), wsim.Handle(left, as_positions(lift, left))]
+                   if given else [wsim.Handle(right, turn), wsim.Handle(left, lift)])
+        body = world.add(wsim.PbdBody(mesh, name="beam", handles=handles, tets="auto", position=shift))
+        body._substep_pipeline = pipelined
+        for _ in range(6):
+            world.step()
+        body.t = world.time
+        return body
+
+    rigid = run(False, None)
+    np.testing.assert_allclose(rigid.particles()[right], as_positions(turn, right)(rigid.t), atol=1e-6)
+    np.testing.assert_allclose(rigid.particles()[left], as_positions(lift, left)(rigid.t), atol=1e-6)
+    for other in (run(True, None), run(False, False), run(True, False)):
+        np.testing.assert_allclose(rigid.particles(), other.particles(), atol=2e-6)
+    assert np.array_equal(rigid.particles(), run(False, False).particles())  # the same launches
 
 
 def test_substep_pipeline_equals_whole_frame_and_a_failing_motion_loses_nothing(device):
@@ -382,7 +397,8 @@ def test_smallest_last_colouring_is_race_free_and_needs_no_more_colours():
     assert len(colour_smallest_last(tets, len(g))[1]) < len(colour_constraints(tets, len(g))[1])
 
 
-def test_pinned_constraints_are_not_projected(monkeypatch):
+@pytest.mark.parametrize("solver", ["gauss_seidel", "jacobi"])
+def test_pinned_constraints_are_not_projected(monkeypatch, solver):
     """A family keeps only the constraints with a free particle (``ConstraintFamily.active``), in
     its colour order, without empty colours; the body projects exactly those and its trajectory
     is the one with every constraint projected, bit for bit (a constraint on pinned particles
@@ -395,7 +411,7 @@ def test_pinned_constraints_are_not_projected(monkeypatch):
 
     def run() -> tuple[np.ndarray, wsim.PbdBody]:
         world = wsim.World(device="cpu")
-        body = world.add(wsim.PbdBody(mesh, name="beam", pinned=pinned, tets="auto", cache=False))
+        body = world.add(wsim.PbdBody(mesh, name="beam", pinned=pinned, tets="auto", cache=False, solver=solver))
         for _ in range(10):
             world.step()
         return body.particles(), body

@@ -91,9 +91,11 @@ def colour_smallest_last(indices: np.ndarray, n_particles: int) -> tuple[np.ndar
     # Python lists: the loops below touch every edge once or twice (numpy per element is slower)
     ptr, nbr = adj.indptr.tolist(), adj.indices.tolist()
     deg = np.diff(adj.indptr).tolist()
-    buckets: list[set[int]] = [set() for _ in range(max(deg) + 1)]
+    # buckets of equal degree as insertion-ordered dicts: the removal order (and so the colouring)
+    # is fixed by the language, not by a set's iteration order
+    buckets: list[dict[int, None]] = [{} for _ in range(max(deg) + 1)]
     for v, d in enumerate(deg):
-        buckets[d].add(v)
+        buckets[d][v] = None
     removed = [False] * k
     order = []
     d = 0
@@ -101,15 +103,16 @@ def colour_smallest_last(indices: np.ndarray, n_particles: int) -> tuple[np.ndar
         d = max(d - 1, 0)  # a removal lowers a neighbour's degree by one at most
         while not buckets[d]:
             d += 1
-        v = buckets[d].pop()  # deterministic: int hashes are not randomized
+        v = next(iter(buckets[d]))
+        del buckets[d][v]
         removed[v] = True
         order.append(v)
         for u in nbr[ptr[v]:ptr[v + 1]]:
             if not removed[u]:
                 du = deg[u]
-                buckets[du].remove(u)
+                del buckets[du][u]
                 deg[u] = du - 1
-                buckets[du - 1].add(u)
+                buckets[du - 1][u] = None
     colour = [-1] * k
     for v in reversed(order):
         used = {colour[u] for u in nbr[ptr[v]:ptr[v + 1]]}

@@ -19,6 +19,11 @@ from wsim.validate import call_user, callback_array
 class Handle:
     """Vertices ``vertices`` follow ``motion(t)`` exactly (they get infinite mass).
 
+    A PBD body evaluates ``motion`` at the end of each of its substeps, just before that substep
+    runs (a motion that reads the body sees it after the substep before); in a frame where the
+    body steps in lockstep with other PBD bodies it touches, at the start of the frame for all of
+    the frame's substeps. A matrix is applied on the body's device.
+
     Args:
         vertices: indices into the body's particles.
         motion: t [s] -> 4x4 matrix (applied to the rest positions) or (K, 3) positions [m].

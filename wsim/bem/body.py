@@ -934,7 +934,7 @@ class BemBody(VertexImpulses, Body):
         k = BemBody.device_window(bodies, target)
         # a batch ends where the growth check could first stop a body, so that a body it stops
         # is left at the step it names (the checks run on the batch's log after the batch)
-        k = min([k] + [b._growth_horizon() - b.steps for b in bodies if b.growth_check])
+        k = max(min([k] + [b._growth_horizon() - b.steps for b in bodies if b.growth_check]), 0)
         for b in bodies:
             if k:
                 b._device_steps(b.steps + k)
@@ -945,7 +945,8 @@ class BemBody(VertexImpulses, Body):
         (5 - g)-th window boundary from now, g the windows already counted growing (it counts at
         most one a boundary and stops at five)."""
         L = self._window_length
-        return (self.state.steps // L + 5 - self.state.window_growing) * L
+        # at least the next boundary (a restored checkpoint may hold a count of 5 or more)
+        return (self.state.steps // L + max(5 - self.state.window_growing, 1)) * L
 
     @staticmethod
     def device_window(bodies: Sequence[BemBody], target: int) -> int:

@@ -364,7 +364,8 @@ class PbdBody(Body):
             self._initial_velocities = vel
         # CPU dispatch: one serial launch per family instead of one per colour (same result, fewer launches)
         self._cpu_serial_sweep = True
-        # a frame with handles substep by substep (``_advance_pipelined``); None: on a GPU with graphs
+        # a frame with handles substep by substep (``_advance_pipelined``); None: always (False, the
+        # whole frame's motions first, is kept for the tests that compare the two)
         self._substep_pipeline: bool | None = None
         # threads per block of the per-colour launches: measured on an H200 (posed 15k model), 32 gave
         # 3.61 ms/frame, 64: 3.77, 128: 3.88, 256: 4.17 (small latency-bound kernels spread wider)
@@ -578,6 +579,7 @@ class PbdBody(Body):
                 H = len(self.handles)
                 self._handle_mats_d = wp.zeros(substeps * H, dtype=wp.mat44d)
                 self._handle_mats_h = wp.zeros(substeps * H, dtype=wp.mat44d, device="cpu", pinned=device.is_cuda)
+                self._staged = wp.Event(device) if device.is_cuda else None  # the staging copies' end
                 self._handle_rest_d = wp.array(self._rest[self._handle_idx], dtype=wp.vec3d)
                 self._handle_of_slot_d = wp.array(
                     np.repeat(np.arange(H), [len(hd.vertices) for hd in self.handles]).astype(np.int32), dtype=wp.int32)
@@ -627,8 +629,8 @@ class PbdBody(Body):
         # every launch goes to the body's device (Warp's default device may be another one)
         with wp.ScopedDevice(device):
             pipelined = self._substep_pipeline
-            if pipelined is None:
-                pipelined = device.is_cuda and self.use_graph
+            if pipelined is None:  # on every device, so that motions are evaluated at the same point
+                pipelined = True
             if pipelined and self.handles:
                 self._advance_pipelined(t0, substeps, h)
                 return
@@ -650,12 +652,13 @@ class PbdBody(Body):
         wp.load_module(kc, device=self._device)
 
     def _advance_pipelined(self, t0: float, substeps: int, h: float) -> None:
-        """A frame of a body with handles on a GPU, substep by substep: each substep's handle
-        motions (Python callbacks, ~60 us each for the posed model's head) are evaluated while
-        the GPU runs the substeps before it, and each substep is a recorded CUDA graph. With the
-        whole frame one graph the motions of all substeps ran first, with the GPU idle (0.6 ms a
-        frame of the posed 15k model). A motion that fails leaves the body as the frame found it
-        (positions and velocities restored) and raises, naming the frame."""
+        """A frame of a body with handles, substep by substep: each substep's handle motions
+        (Python callbacks, ~30 us each for the posed model's head) are evaluated just before the
+        substep, on a GPU while it runs the substeps before it, and there each substep is a
+        recorded CUDA graph. With the whole frame one graph the motions of all substeps ran
+        first, with the GPU idle. A motion that reads the body sees the state after the substep
+        before its own, on every device. A motion that fails leaves the body as the frame found
+        it (positions and velocities restored) and raises, naming the frame."""
         device = self._device
         graphs = device.is_cuda and self.use_graph  # elsewhere (tests on the CPU) the same launches
         if not isinstance(self._graph, list):  # one graph a substep (reset with the frame's graph)
@@ -690,10 +693,14 @@ class PbdBody(Body):
 
     def _upload_handle_targets(self, t0: float, substeps: int, h: float, first: int, last: int) -> None:
         """The handle targets of substeps first .. last - 1 (0-based) of the frame from t0 into
-        their slots of the device buffer (asynchronous on a GPU)."""
+        their slots of the device buffer (asynchronous on a GPU: the page-locked staging buffers
+        are written again only once the last interval's copies out of them have run, which
+        several intervals a frame (``World(coupling_dt=...)``) would otherwise overtake)."""
         rest = self._rest
         k = len(self._handle_idx)
         H = len(self.handles)
+        if first == 0 and self._staged is not None:
+            wp.synchronize_event(self._staged)
         poses = []
         for s in range(first, last):
             t = t0 + (s + 1) * h
@@ -720,6 +727,8 @@ class PbdBody(Body):
                      for hd, a in zip(self.handles, row)])
             wp.copy(self._handle_targets_d, self._handle_targets_h, dest_offset=first * k, src_offset=first * k,
                     count=(last - first) * k)
+        if last == substeps and self._staged is not None:
+            wp.record_event(self._staged)
 
     def _upload_collider_poses(self, t0: float, substeps: int, h: float) -> None:
         """The mesh colliders' poses at the frame's substep boundaries into their device buffers."""
