@@ -203,7 +203,7 @@ def test_rigid_handle_posed_on_device_matches_positions(device):
     def as_positions(motion, idx):  # the same motion as targets of the body placed at ``shift``
         return lambda t: (v[idx] + shift) @ motion(t)[:3, :3].T + motion(t)[:3, 3]
 
-    def run(given: bool, pipelined: bool | None) -> wsim.PbdBody:
+    def run(given: bool, pipelined: bool) -> wsim.PbdBody:
         world = wsim.World(device=device)
         handles = ([wsim.Handle(right, as_positions(turn, right)), wsim.Handle(left, as_positions(lift, left))]
                    if given else [wsim.Handle(right, turn), wsim.Handle(left, lift)])
@@ -214,10 +214,10 @@ def test_rigid_handle_posed_on_device_matches_positions(device):
         body.t = world.time
         return body
 
-    rigid = run(False, None)
+    rigid = run(False, True)
     np.testing.assert_allclose(rigid.particles()[right], as_positions(turn, right)(rigid.t), atol=1e-6)
     np.testing.assert_allclose(rigid.particles()[left], as_positions(lift, left)(rigid.t), atol=1e-6)
-    for other in (run(True, None), run(False, False), run(True, False)):
+    for other in (run(True, True), run(False, False), run(True, False)):
         np.testing.assert_allclose(rigid.particles(), other.particles(), atol=2e-6)
     assert np.array_equal(rigid.particles(), run(False, False).particles())  # the same launches
 

@@ -48,8 +48,13 @@ class Handle:
         ``what`` names the handle in error messages (default ``handle '<name>' motion``; a body
         passes ``body 'neck': handle 'tip' (handles[0]) motion``) and ``frame`` is the World frame
         being computed, so a bad motion is reported with the body, the frame and the time."""
-        a = self.pose(t, rest.shape, what, frame)
-        return rest @ a[:3, :3].T + a[:3, 3] if a.shape == (4, 4) else a
+        return self.place(self.pose(t, rest.shape, what, frame), rest)
+
+    @staticmethod
+    def place(pose: np.ndarray, rest: np.ndarray) -> np.ndarray:
+        """(K, 3) targets of a checked pose (``pose``): a 4x4 matrix applied to the rest positions,
+        or the positions themselves."""
+        return rest @ pose[:3, :3].T + pose[:3, 3] if pose.shape == (4, 4) else pose
 
     def pose(self, t: float, shape: tuple[int, ...], what: str | None = None, frame: int | None = None) -> np.ndarray:
         """``motion(t)`` checked (``targets``): a 4x4 matrix, or the ``shape`` (K, 3) positions."""

@@ -71,7 +71,7 @@ class PbdBatch:
                      "_cpu_serial_sweep", "_block_dim", "_gravity", "_planes", "_surfaces", "_mesh_surfaces"):
             setattr(self, name, getattr(b0, name))
         self.handles = ()
-        self._substep_pipeline = None  # no handles: whole-frame graphs
+        self._substep_pipeline = False  # no handles: whole-frame graphs
         self.conserve_angular_momentum = any(b.conserve_angular_momentum for b in bodies)
         block = int(kp.MOMENT_BLOCK)
         counts = np.array([b.model.n_particles for b in bodies])

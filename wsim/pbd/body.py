@@ -364,9 +364,9 @@ class PbdBody(Body):
             self._initial_velocities = vel
         # CPU dispatch: one serial launch per family instead of one per colour (same result, fewer launches)
         self._cpu_serial_sweep = True
-        # a frame with handles substep by substep (``_advance_pipelined``); None: always (False, the
-        # whole frame's motions first, is kept for the tests that compare the two)
-        self._substep_pipeline: bool | None = None
+        # a frame with handles substep by substep (``_advance_pipelined``); False (the whole frame's
+        # motions first) is kept for the tests that compare the two
+        self._substep_pipeline = True
         # threads per block of the per-colour launches: measured on an H200 (posed 15k model), 32 gave
         # 3.61 ms/frame, 64: 3.77, 128: 3.88, 256: 4.17 (small latency-bound kernels spread wider)
         self._block_dim = 32
@@ -552,9 +552,10 @@ class PbdBody(Body):
     def _upload_family(self, f: ConstraintFamily, lam: wp.array) -> _DeviceFamily:
         # Jacobi's scale counts every constraint of the model's family on a particle (the dropped
         # ones included, so that dropping them changes nothing)
-        full = next(g for g in self.model.families if g.kind == f.kind)
-        count = np.bincount(np.asarray(full.indices).ravel(), minlength=self.model.n_particles) \
-            if self.solver == "jacobi" else np.zeros(1)
+        count = np.zeros(1)
+        if self.solver == "jacobi":
+            full = next(g for g in self.model.families if g.kind == f.kind)
+            count = np.bincount(np.asarray(full.indices).ravel(), minlength=self.model.n_particles)
         return _DeviceFamily(
             kind=f.kind,
             offsets=f.offsets,
@@ -628,10 +629,7 @@ class PbdBody(Body):
         device = self._device
         # every launch goes to the body's device (Warp's default device may be another one)
         with wp.ScopedDevice(device):
-            pipelined = self._substep_pipeline
-            if pipelined is None:  # on every device, so that motions are evaluated at the same point
-                pipelined = True
-            if pipelined and self.handles:
+            if self._substep_pipeline and self.handles:  # on every device: motions evaluated at one point
                 self._advance_pipelined(t0, substeps, h)
                 return
             self._upload_frame_inputs(t0, substeps, h)
@@ -723,8 +721,7 @@ class PbdBody(Body):
             host = self._handle_targets_h.numpy()
             for s, row in zip(range(first, last), poses):
                 host[s * k : (s + 1) * k] = np.concatenate(
-                    [rest[hd.vertices] @ a[:3, :3].T + a[:3, 3] if a.shape == (4, 4) else a
-                     for hd, a in zip(self.handles, row)])
+                    [Handle.place(a, rest[hd.vertices]) for hd, a in zip(self.handles, row)])
             wp.copy(self._handle_targets_d, self._handle_targets_h, dest_offset=first * k, src_offset=first * k,
                     count=(last - first) * k)
         if last == substeps and self._staged is not None:
