@@ -63,12 +63,16 @@ def xpbd_delta_lambda(
 
 @wp.func
 def project4(
-    x_pred: wp.array(dtype=wp.vec3),
     dx: wp.array(dtype=wp.vec3),
-    inv_mass: wp.array(dtype=float),
     lam: wp.array(dtype=float),
     c: int,
     ids: wp.vec4i,
+    w: wp.vec4,
+    lam_c: float,
+    d0: wp.vec3,
+    d1: wp.vec3,
+    d2: wp.vec3,
+    d3: wp.vec3,
     g0: wp.vec3,
     g1: wp.vec3,
     g2: wp.vec3,
@@ -83,27 +87,25 @@ def project4(
     omega: float,
 ):
     """One XPBD projection of a 4-particle constraint with value C, change dC over the substep and
-    gradients g0..g3 (module docstring); the correction is added to ``dx``, or in the Jacobi mode
-    (omega > 0, module docstring) scaled and added to ``acc``."""
-    w0 = inv_mass[ids[0]]
-    w1 = inv_mass[ids[1]]
-    w2 = inv_mass[ids[2]]
-    w3 = inv_mass[ids[3]]
-    w_grad2 = w0 * wp.dot(g0, g0) + w1 * wp.dot(g1, g1) + w2 * wp.dot(g2, g2) + w3 * wp.dot(g3, g3)
-    dl = xpbd_delta_lambda(C, lam[c], w_grad2, dC, compliance, beta, h)
+    gradients g0..g3 (module docstring), given the particles' inverse masses w, their corrections
+    so far d0..d3 (dx) and the multiplier lam_c (loaded by the caller with everything else, see
+    ``solve_distance``); the correction is added to ``dx``, or in the Jacobi mode (omega > 0,
+    module docstring) scaled and added to ``acc``."""
+    w_grad2 = w[0] * wp.dot(g0, g0) + w[1] * wp.dot(g1, g1) + w[2] * wp.dot(g2, g2) + w[3] * wp.dot(g3, g3)
+    dl = xpbd_delta_lambda(C, lam_c, w_grad2, dC, compliance, beta, h)
     if omega > 0.0:
         dl = dl * omega / wp.max(wp.max(count[ids[0]], count[ids[1]]), wp.max(count[ids[2]], count[ids[3]]))
-        lam[c] = lam[c] + dl
-        wp.atomic_add(acc, ids[0], g0 * (w0 * dl))
-        wp.atomic_add(acc, ids[1], g1 * (w1 * dl))
-        wp.atomic_add(acc, ids[2], g2 * (w2 * dl))
-        wp.atomic_add(acc, ids[3], g3 * (w3 * dl))
+        lam[c] = lam_c + dl
+        wp.atomic_add(acc, ids[0], g0 * (w[0] * dl))
+        wp.atomic_add(acc, ids[1], g1 * (w[1] * dl))
+        wp.atomic_add(acc, ids[2], g2 * (w[2] * dl))
+        wp.atomic_add(acc, ids[3], g3 * (w[3] * dl))
         return
-    lam[c] = lam[c] + dl
-    dx[ids[0]] = dx[ids[0]] + g0 * (w0 * dl)
-    dx[ids[1]] = dx[ids[1]] + g1 * (w1 * dl)
-    dx[ids[2]] = dx[ids[2]] + g2 * (w2 * dl)
-    dx[ids[3]] = dx[ids[3]] + g3 * (w3 * dl)
+    lam[c] = lam_c + dl
+    dx[ids[0]] = d0 + g0 * (w[0] * dl)
+    dx[ids[1]] = d1 + g1 * (w[1] * dl)
+    dx[ids[2]] = d2 + g2 * (w[2] * dl)
+    dx[ids[3]] = d3 + g3 * (w[3] * dl)
 
 
 @wp.kernel
@@ -156,16 +158,17 @@ def predict_positions(
     """
     i = wp.tid()
     xi = x[i]
+    vi = v[i]  # loaded with the mass, not after the test of it (one memory round trip less)
+    slot = handle_slot[i]
     x_prev[i] = xi
     x_pred[i] = xi
     dx[i] = wp.vec3(0.0)
     if inv_mass[i] == 0.0:
         v[i] = wp.vec3(0.0)
-        slot = handle_slot[i]
         if slot >= 0:
             dx[i] = handle_targets[target_offset + slot] - xi
         return
-    vi = (v[i] + gravity * h) * wp.exp(-drag * h)
+    vi = (vi + gravity * h) * wp.exp(-drag * h)
     v[i] = vi
     x_pred[i] = xi + vi * h
 
@@ -369,27 +372,39 @@ def solve_distance(
     c = wp.tid() + offset
     i = pairs[c][0]
     j = pairs[c][1]
+    # every load is issued before the first branch: a test of the masses first made the positions
+    # wait for them, one more memory round trip in each colour's launch, and a frame's launches
+    # run one after another (tools/bench_graph_nodes.py)
     wi = inv_mass[i]
     wj = inv_mass[j]
+    xi = x_pred[i]
+    xj = x_pred[j]
+    dxi = dx[i]
+    dxj = dx[j]
+    pi = x_prev[i]
+    pj = x_prev[j]
+    lam_c = lam[c]
+    rest_c = rest[c]
+    compliance_c = compliance[c]
     if wi + wj == 0.0:
         return
-    d = (x_pred[i] - x_pred[j]) + (dx[i] - dx[j])
+    d = (xi - xj) + (dxi - dxj)
     length = wp.length(d)
     if length < 1.0e-12:
         return
     n = d / length
-    C = length - rest[c]
-    dC = length - wp.length(x_prev[i] - x_prev[j])
-    dl = xpbd_delta_lambda(C, lam[c], wi + wj, dC, compliance[c], beta, h)
+    C = length - rest_c
+    dC = length - wp.length(pi - pj)
+    dl = xpbd_delta_lambda(C, lam_c, wi + wj, dC, compliance_c, beta, h)
     if omega > 0.0:  # Jacobi (module docstring): both ends get the same scaled multiplier
         dl = dl * omega / wp.max(count[i], count[j])
-        lam[c] = lam[c] + dl
+        lam[c] = lam_c + dl
         wp.atomic_add(acc, i, n * (wi * dl))
         wp.atomic_add(acc, j, -n * (wj * dl))
         return
-    lam[c] = lam[c] + dl
-    dx[i] = dx[i] + n * (wi * dl)
-    dx[j] = dx[j] - n * (wj * dl)
+    lam[c] = lam_c + dl
+    dx[i] = dxi + n * (wi * dl)
+    dx[j] = dxj - n * (wj * dl)
 
 
 @wp.func
@@ -439,12 +454,25 @@ def solve_bending(
     """
     c = wp.tid() + offset
     ids = hinges[c]
-    if inv_mass[ids[0]] + inv_mass[ids[1]] + inv_mass[ids[2]] + inv_mass[ids[3]] == 0.0:
+    # every load before the first branch (see solve_distance)
+    w = wp.vec4(inv_mass[ids[0]], inv_mass[ids[1]], inv_mass[ids[2]], inv_mass[ids[3]])
+    d0 = dx[ids[0]]
+    d1 = dx[ids[1]]
+    d2 = dx[ids[2]]
+    d3 = dx[ids[3]]
+    w1 = x_pred[ids[0]] + d0
+    w2 = x_pred[ids[1]] + d1
+    e0 = x_pred[ids[2]] + d2
+    e1 = x_pred[ids[3]] + d3
+    p0 = x_prev[ids[0]]
+    p1 = x_prev[ids[1]]
+    p2 = x_prev[ids[2]]
+    p3 = x_prev[ids[3]]
+    lam_c = lam[c]
+    rest_c = rest[c]
+    compliance_c = compliance[c]
+    if w[0] + w[1] + w[2] + w[3] == 0.0:
         return
-    w1 = x_pred[ids[0]] + dx[ids[0]]
-    w2 = x_pred[ids[1]] + dx[ids[1]]
-    e0 = x_pred[ids[2]] + dx[ids[2]]
-    e1 = x_pred[ids[3]] + dx[ids[3]]
     E = e1 - e0
     len2 = wp.dot(E, E)
     n1 = wp.cross(E, w1 - e0)
@@ -463,9 +491,10 @@ def solve_bending(
     # theta = atan2((n1^ x n2^).E^, n1^.n2^): atan2 is scale-free, so the unnormalized normals do
     theta = wp.atan2(wp.dot(wp.cross(n1, n2), E) / elen, wp.dot(n1, n2))
     # keep C in (-pi, pi] so a hinge that passes through +-pi is pulled the short way round
-    C = wrap_angle(theta - rest[c])
-    dC = wrap_angle(theta - dihedral(x_prev[ids[0]], x_prev[ids[1]], x_prev[ids[2]], x_prev[ids[3]]))
-    project4(x_pred, dx, inv_mass, lam, c, ids, g1, g2, g3, g4, C, dC, compliance[c], beta, h, acc, count, omega)
+    C = wrap_angle(theta - rest_c)
+    dC = wrap_angle(theta - dihedral(p0, p1, p2, p3))
+    project4(dx, lam, c, ids, w, lam_c, d0, d1, d2, d3, g1, g2, g3, g4, C, dC, compliance_c, beta, h, acc, count,
+             omega)
 
 
 @wp.func
@@ -497,20 +526,36 @@ def solve_tet_volume(
     """
     c = wp.tid() + offset
     ids = tets[c]
-    if inv_mass[ids[0]] + inv_mass[ids[1]] + inv_mass[ids[2]] + inv_mass[ids[3]] == 0.0:
+    # every load before the first branch (see solve_distance)
+    w = wp.vec4(inv_mass[ids[0]], inv_mass[ids[1]], inv_mass[ids[2]], inv_mass[ids[3]])
+    c0 = dx[ids[0]]
+    c1 = dx[ids[1]]
+    c2 = dx[ids[2]]
+    c3 = dx[ids[3]]
+    x0 = x_pred[ids[0]] + c0
+    x1 = x_pred[ids[1]] + c1
+    x2 = x_pred[ids[2]] + c2
+    x3 = x_pred[ids[3]] + c3
+    p0 = x_prev[ids[0]]
+    p1 = x_prev[ids[1]]
+    p2 = x_prev[ids[2]]
+    p3 = x_prev[ids[3]]
+    lam_c = lam[c]
+    rest_c = rest[c]
+    compliance_c = compliance[c]
+    if w[0] + w[1] + w[2] + w[3] == 0.0:
         return
-    x0 = x_pred[ids[0]] + dx[ids[0]]
-    d1 = (x_pred[ids[1]] + dx[ids[1]]) - x0
-    d2 = (x_pred[ids[2]] + dx[ids[2]]) - x0
-    d3 = (x_pred[ids[3]] + dx[ids[3]]) - x0
+    d1 = x1 - x0
+    d2 = x2 - x0
+    d3 = x3 - x0
     g1 = wp.cross(d2, d3) / 6.0
     g2 = wp.cross(d3, d1) / 6.0
     g3 = wp.cross(d1, d2) / 6.0
     V = wp.dot(d1, g1)
-    C = V - rest[c]
-    dC = V - tet_volume6(x_prev[ids[0]], x_prev[ids[1]], x_prev[ids[2]], x_prev[ids[3]]) / 6.0
-    project4(x_pred, dx, inv_mass, lam, c, ids, -(g1 + g2 + g3), g1, g2, g3, C, dC, compliance[c], beta, h, acc,
-             count, omega)
+    C = V - rest_c
+    dC = V - tet_volume6(p0, p1, p2, p3) / 6.0
+    project4(dx, lam, c, ids, w, lam_c, c0, c1, c2, c3, -(g1 + g2 + g3), g1, g2, g3, C, dC, compliance_c, beta, h,
+             acc, count, omega)
 
 
 #: threads per block of the volume reduction (one float64 atomic per block and sum)
@@ -522,9 +567,8 @@ def volume_gradient(
     x_pred: wp.array(dtype=wp.vec3),
     dx: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
-    faces: wp.array(dtype=wp.vec3i),
     vertex_face_start: wp.array(dtype=int),
-    vertex_faces: wp.array(dtype=int),
+    face_pairs: wp.array(dtype=wp.vec2i),
     grad: wp.array(dtype=wp.vec3),
     sums: wp.array(dtype=wp.float64),
     slot: int,
@@ -532,7 +576,9 @@ def volume_gradient(
     """Global enclosed volume of a closed surface and its gradient, one thread per vertex.
 
     V = (1/6) sum_f (x_a - o).((x_b - o) x (x_c - o)); grad_i V = (1/6) sum_{f containing i}
-    (x_b - o) x (x_c - o) with (i, b, c) the face read cyclically from i. o = x[0] removes the
+    (x_b - o) x (x_c - o) with (i, b, c) the face read cyclically from i: ``face_pairs`` holds
+    (b, c) for each entry of the vertex -> face adjacency (CSR, ``vertex_face_start``), so a
+    face's positions wait for one index load, not two. o = x[0] removes the
     float32 cancellation of a body far from the origin (V and its gradient do not depend on o
     for a closed surface). V is homogeneous of degree 3 in (x - o), so V = (1/3) sum_i (x_i - o).grad_i V.
     The shares and w_i |grad_i V|^2 are summed per block (tile reduction) and added, one float64
@@ -548,16 +594,8 @@ def volume_gradient(
         o = x_pred[0] + dx[0]
         g = wp.vec3(0.0)
         for k in range(vertex_face_start[i], vertex_face_start[i + 1]):
-            f = faces[vertex_faces[k]]
-            b = f[1]
-            c = f[2]
-            if f[1] == i:
-                b = f[2]
-                c = f[0]
-            elif f[2] == i:
-                b = f[0]
-                c = f[1]
-            g = g + wp.cross((x_pred[b] + dx[b]) - o, (x_pred[c] + dx[c]) - o)
+            bc = face_pairs[k]
+            g = g + wp.cross((x_pred[bc[0]] + dx[bc[0]]) - o, (x_pred[bc[1]] + dx[bc[1]]) - o)
         g = g / 6.0
         grad[i] = g
         share = wp.float64(wp.dot((x_pred[i] + dx[i]) - o, g)) / wp.float64(3.0)

@@ -514,9 +514,8 @@ class PbdBody(Body):
                 start += f.count
             if m.volume is not None:
                 vol = m.volume
-                self._faces_d = wp.array(m.faces, dtype=wp.vec3i)
                 self._vf_start = wp.array(vol.vertex_face_start, dtype=int)
-                self._vf = wp.array(vol.vertex_faces, dtype=int)
+                self._vf_pairs = wp.array(vol.face_pairs(m.faces), dtype=wp.vec2i)
                 self._vol_grad = wp.zeros(m.n_surface, dtype=wp.vec3)
                 # per iteration k: sums [V, sum w|grad V|^2] in slot k, multiplier before it in lam[k]
                 # (two views of one buffer, so one memset per substep clears both)
@@ -812,7 +811,7 @@ class PbdBody(Body):
             wp.launch(
                 kp.volume_gradient,
                 dim=-(-m.n_surface // kp.VOLUME_BLOCK) * kp.VOLUME_BLOCK,
-                inputs=[self.x_pred, self.dx, self.inv_mass, self._faces_d, self._vf_start, self._vf, self._vol_grad, self._vol_sums, it],
+                inputs=[self.x_pred, self.dx, self.inv_mass, self._vf_start, self._vf_pairs, self._vol_grad, self._vol_sums, it],
                 block_dim=kp.VOLUME_BLOCK,
             )
             wp.launch(

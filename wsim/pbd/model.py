@@ -111,6 +111,16 @@ class GlobalVolume:
     vertex_face_start: np.ndarray
     vertex_faces: np.ndarray
 
+    def face_pairs(self, faces: np.ndarray) -> np.ndarray:
+        """(E, 2) int32: for each entry of the adjacency, the incident face's other two vertices
+        (b, c) read cyclically from the vertex (i, b, c), the order its gradient term
+        (x_b - o) x (x_c - o) needs (``wsim.kernels.pbd.volume_gradient``)."""
+        owner = np.repeat(np.arange(len(self.vertex_face_start) - 1), np.diff(self.vertex_face_start))
+        f = np.asarray(faces)[self.vertex_faces]
+        at = np.argmax(f == owner[:, None], axis=1)  # where the vertex sits in its face
+        rows = np.arange(len(f))
+        return np.stack([f[rows, (at + 1) % 3], f[rows, (at + 2) % 3]], axis=1).astype(np.int32)
+
 
 @dataclass(frozen=True)
 class PbdModel:
