@@ -265,3 +265,56 @@ def moving_surface_contact(
     J = wp.vec3d(c * (inv_h / w_p))
     for k in range(3):
         wp.atomic_sub(impulse, tri[k], wp.float64(b[k]) * J)
+
+
+@wp.kernel
+def moving_points_contact(
+    points: wp.array(dtype=wp.vec3),
+    points_prev: wp.array(dtype=wp.vec3),
+    mesh: wp.uint64,
+    x_prev: wp.array(dtype=wp.vec3),
+    dx: wp.array(dtype=wp.vec3),
+    dxc: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    margin: float,
+    max_dist: float,
+    mu: float,
+    inv_h: float,
+    impulse: wp.array(dtype=wp.vec3d),
+    closed: int,
+):
+    """The other way round from ``moving_surface_contact``: a vertex p of another body's moving
+    surface (``points`` at the end of the substep, ``points_prev`` at its start; kinematic over
+    the frame) against this body's own current surface (``mesh``: its surface particles'
+    positions x_pred + dx; ``closed``: its inside test), so that a corner of the other body cannot
+    pass between this body's particles. With s = sum_k b_k q_k the nearest point of this surface
+    and n its outward normal, C = n . (p - s) - margin >= 0; p cannot move, so the triangle's
+    particles move by -b_k w_k / W c, W = sum_k b_k^2 w_k, c = n depth + the Coulomb correction of
+    the slip of p relative to s over the substep: s moves by -c. The momentum that takes from this
+    body, sum over free k of b_k c / (W h), is the vertex's ``impulse`` [N s] (handed to the other
+    body by the World, as for the particles' own contacts). One thread per vertex; the particles
+    take atomic adds (several vertices may press on one triangle)."""
+    j = wp.tid()
+    p = points[j]
+    depth, s, n, face, b = surface_contact(mesh, p, max_dist, margin, closed)
+    if depth <= 0.0:
+        return
+    tri = face_vertices(mesh, face)
+    W = float(0.0)
+    free = float(0.0)
+    for k in range(3):
+        w_k = inv_mass[tri[k]]
+        W += b[k] * b[k] * w_k
+        if w_k > 0.0:
+            free += b[k]
+    if W <= 0.0:
+        return
+    s_prev = b[0] * x_prev[tri[0]] + b[1] * x_prev[tri[1]] + b[2] * x_prev[tri[2]]
+    rel = (p + n * depth - points_prev[j]) - (s - s_prev)
+    c = n * depth + friction_correction(rel, n, depth, mu)  # the change of p - s that is wanted
+    for k in range(3):
+        dq = -c * (b[k] * inv_mass[tri[k]] / W)
+        wp.atomic_add(dx, tri[k], dq)
+        wp.atomic_add(dxc, tri[k], dq)
+    wp.atomic_add(impulse, j, wp.vec3d(c * (free * inv_h / W)))
+

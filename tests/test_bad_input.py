@@ -117,8 +117,23 @@ def test_bad_handle_motion_and_collider_pose_are_named():
     world = wsim.World(device="cpu")
     world.add_collider(wsim.MeshCollider(trimesh.creation.box(), transform=lambda t: "up", name="lift"))
     world.add(wsim.PbdBody((v, f), name="b"))
-    with pytest.raises(wsim.InvalidParameter, match="collider 'lift'.*4x4"):
+    with pytest.raises(wsim.InvalidParameter, match="collider 'lift'.*in frame 1.*4x4"):
         world.step()
+    # a transform that raises: named like a handle's motion (collider, t, frame), the cause chained
+
+    def lift(t: float) -> np.ndarray:
+        if t > 0.05:
+            raise RuntimeError("rig lost")
+        return np.eye(4)
+
+    world = wsim.World(device="cpu")
+    world.add_collider(wsim.MeshCollider(trimesh.creation.box(), transform=lift, name="lift"))
+    world.add(wsim.PbdBody((v, f), name="b"))
+    world.step()
+    with pytest.raises(wsim.InvalidParameter, match=r"collider 'lift': transform at t = 0.0\d* s raised RuntimeError: "
+                       r"rig lost; in frame 2") as info:
+        world.step()
+    assert isinstance(info.value.__cause__, RuntimeError)
 
 
 def test_inward_collider_and_unused_tet_particles_are_rejected():

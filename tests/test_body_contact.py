@@ -191,6 +191,28 @@ def test_pbd_box_rests_on_a_pbd_box_on_the_ground():
     assert np.abs(top.velocities()).max() < 0.1
 
 
+def test_pbd_box_slides_to_the_coulomb_distance_on_a_pbd_slab_with_its_own_friction():
+    """``PbdBody(friction=...)``: a box launched at 1 m/s across a slab resting on the ground, both
+    at friction 0.3 (below the 0.5 a body that sets none has), stops within 15 % of
+    v0^2 / (2 mu g) with mu = 0.3; a negative coefficient is refused."""
+    with pytest.raises(wsim.InvalidParameter, match="body 'b': friction"):
+        wsim.PbdBody(trimesh.creation.box(), name="b", friction=-0.1, cache=False)
+    mu, v0 = 0.3, 1.0
+    w = wsim.World(fps=60, gravity=(0.0, -G, 0.0), device="cpu")
+    w.add_collider(wsim.GroundPlane(0.0, friction=0.8))
+    slab = trimesh.creation.box(extents=(1.2, 0.1, 0.4)).subdivide()
+    w.add(wsim.PbdBody(slab, PBD_MAT, tets="auto", name="slab", position=(0.3, 0.05, 0.0), damping=0.01, friction=mu))
+    box = trimesh.creation.box(extents=(0.1, 0.1, 0.1)).subdivide()
+    top = w.add(wsim.PbdBody(box, PBD_MAT, tets="auto", name="top", position=(0.0, 0.151, 0.0), damping=0.01,
+                             friction=mu, velocity=(v0, 0.0, 0.0)))
+    x0 = top.center_of_mass()[0]
+    for _ in range(45):
+        w.step()
+    expected = v0**2 / (2.0 * mu * G)
+    assert abs(np.linalg.norm(top.velocities().mean(axis=0))) < 0.02  # stopped
+    assert top.center_of_mass()[0] - x0 == pytest.approx(expected, rel=0.15)
+
+
 def test_pbd_ball_landing_on_a_thin_tetrahedral_fish_does_not_fling_it(device):
     """The showcase's draft (issue 18): a tetrahedral PBD fish (0.3 m, thin tail and fins) lands
     on the ground spinning, and a PBD ball (r = 8 cm) falls onto it at about 3.4 m/s, at 40
@@ -322,6 +344,33 @@ def test_pbd_ball_rests_on_a_bem_cube_on_the_ground(box_ops):
     assert np.abs(ball.velocities()).max() < 0.1
     weight = float(ball.masses.sum()) * G * w.time
     assert cube.coupling_impulse[1] == pytest.approx(-weight, rel=0.01)
+
+
+@pytest.mark.parametrize("kept_out", [True, False], ids=["kept_out", "particles_only"])
+def test_bem_cube_rests_on_a_coarse_pbd_box(box_ops, monkeypatch, kept_out):
+    """A BEM cube set on a coarse PBD box (98 surface vertices, wider than the cube's faces' mesh
+    spacing) resting on the ground: the PBD body also keeps the cube's vertices out of its own
+    surface (``moving_points_contact``), so no corner of the cube sinks between its particles
+    (the deepest stays under 0.3 mm over 0.5 s) and the cube stays on top. With only the PBD
+    particles kept out of the cube (``vertices_kept_out`` off) its corners sink in within that
+    time: the test can tell the two apart."""
+    monkeypatch.setattr(wsim.BemBody, "vertices_kept_out", kept_out)
+    w = wsim.World(fps=1.0 / (5 * DT), gravity=(0.0, -G, 0.0), device="cpu")
+    w.add_collider(wsim.GroundPlane(0.0, friction=0.5))
+    box = trimesh.creation.box(extents=(0.4, 0.12, 0.4)).subdivide().subdivide()
+    low = w.add(wsim.PbdBody(box, wsim.ElasticMaterial(E=4e5, nu=0.3, rho=600.0), tets="auto", name="low",
+                             position=(0.0, 0.0605, 0.0), damping=0.01))
+    cube = w.add(wsim.BemBody(BOX, MAT, DT, operators=box_ops, name="cube", position=(0.03, 0.2215, 0.0)))
+    assert len(low.points()) == 98
+    deepest = 0.0
+    for _ in range(50):
+        w.step()
+        deepest = max(deepest, _depth(low, cube))
+    if kept_out:
+        assert deepest < 3e-4
+        assert cube.points()[:, 1].min() > low.points()[:, 1].max() - 1e-3
+    else:
+        assert deepest > 1e-3
 
 
 def test_pbd_ball_and_eol_box_collide():

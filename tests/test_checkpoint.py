@@ -145,6 +145,15 @@ def test_foreign_checkpoint_is_refused(tmp_path: Path, monkeypatch: pytest.Monke
     other.bodies[0].substeps = 5
     with pytest.raises(wsim.CheckpointError, match="body 'pbd' substeps: saved 4, this scene 5"):
         other.restore(path)
+    # an EoL body of another material (its signature carries it, as PBD's and BEM's do)
+    import dataclasses
+
+    eol_path = _stepped("eol", monkeypatch, 1).checkpoint(tmp_path / "eol.h5")
+    softer = _build("eol", monkeypatch)
+    body = softer.bodies[0]
+    body.material = dataclasses.replace(body.material, E=2.0 * body.material.E)
+    with pytest.raises(wsim.CheckpointError, match=f"body '{body.name}' material: saved"):
+        softer.restore(eol_path)
     # another format version
     with h5py.File(path, "r+") as f:
         f.attrs["version"] = checkpoint.FORMAT_VERSION + 1

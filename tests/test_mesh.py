@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
+import wsim
 from wsim import mesh as wm
 from wsim.errors import InvalidMesh, InvalidParameter
 
@@ -297,6 +298,23 @@ def test_non_manifold_edges():
     faces = np.vstack([tet, second])
     msg = raises_mesh(["non-manifold", "vertices 0-1", "shared by 4 faces"], wm.check_surface, verts, faces)
     assert "watertight" not in msg
+
+
+def test_vertex_pinching_two_sheets_is_refused():
+    """Two closed spheres that share one vertex pass the edge tests (every edge has two faces,
+    consistently oriented), but the shared vertex joins two fans of faces: refused, naming it
+    (an independent check found a BEM body of such a mesh pushed by a uniform pressure)."""
+    v, f = icosphere(1)
+    top, bottom = int(np.argmax(v[:, 1])), int(np.argmin(v[:, 1]))
+    w = v + (v[top] - v[bottom])  # the second sphere stands on the first's top vertex
+    idx = np.arange(len(v)) + len(v) - (np.arange(len(v)) > bottom)  # its vertices after the first's
+    idx[bottom] = top  # its bottom vertex is the first's top
+    verts = np.vstack([v, np.delete(w, bottom, axis=0)])
+    faces = np.vstack([f, idx[f]])
+    msg = raises_mesh(["non-manifold vertex", f"vertex {top} ", "2 fans"], wm.check_surface, verts, faces)
+    assert "watertight" not in msg
+    with pytest.raises(InvalidMesh, match="body 'pinched'.*non-manifold vertex"):
+        wsim.PbdBody((verts, faces), name="pinched", cache=False)
 
 
 def test_check_surface_is_fast_on_large_mesh():

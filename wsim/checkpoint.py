@@ -34,7 +34,7 @@ if TYPE_CHECKING:
     from wsim.world import World
 
 FORMAT = "wsim-checkpoint"
-FORMAT_VERSION = 4  # 2: BEM and EoL states carry the coupling impulses still to deliver (issue 18); 3: and EoL the push rates of its yielding partners; 4: EoL bodies touch in one QP (no push rates)
+FORMAT_VERSION = 5  # 2: BEM and EoL states carry the coupling impulses still to deliver (issue 18); 3: and EoL the push rates of its yielding partners; 4: EoL bodies touch in one QP (no push rates); 5: EoL signatures carry the material and plasticity
 
 
 def scene_description(world: World) -> dict[str, Any]:

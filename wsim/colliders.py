@@ -22,7 +22,7 @@ import numpy as np
 import warp as wp
 
 from wsim import mesh as wmesh
-from wsim.validate import as_vec3
+from wsim.validate import as_vec3, call_user
 from wsim.errors import InvalidParameter
 
 TransformLike = Union[np.ndarray, Callable[[float], np.ndarray], None]
@@ -44,8 +44,9 @@ class Collider(ABC):
     kinematic: bool = False
     extent: float = float("inf")  # diagonal of the surface's bounding box [m] (inf: unbounded)
 
-    def matrix(self, t: float) -> np.ndarray:
-        """Local-to-world rigid 4x4 matrix at time t [s] (identity: the surface is given in world)."""
+    def matrix(self, t: float, frame: int | None = None) -> np.ndarray:
+        """Local-to-world rigid 4x4 matrix at time t [s] (identity: the surface is given in world);
+        ``frame``: the World frame being computed, for error messages."""
         return np.eye(4)
 
     def plane(self, up: np.ndarray) -> tuple[np.ndarray, float] | None:
@@ -117,8 +118,8 @@ _OFF = ~np.eye(3, dtype=bool)
 _LAST = np.array([0.0, 0.0, 0.0, 1.0])
 
 
-def _check_matrix(m: np.ndarray, name: str, t: float | None) -> np.ndarray:
-    at = "" if t is None else f" at t = {t:.6g} s"
+def _check_matrix(m: np.ndarray, name: str, t: float | None, frame: int | None = None) -> np.ndarray:
+    at = ("" if t is None else f" at t = {t:.6g} s") + ("" if frame is None else f" (in frame {frame})")
     try:
         a = np.asarray(m, dtype=np.float64)
     except (TypeError, ValueError):
@@ -185,10 +186,12 @@ class MeshCollider(Collider):
         M = self.matrix(t)
         return M[:3, :3] @ self._centre + M[:3, 3], self.radius
 
-    def matrix(self, t: float) -> np.ndarray:
-        """Local-to-world 4x4 matrix at time t [s]."""
+    def matrix(self, t: float, frame: int | None = None) -> np.ndarray:
+        """Local-to-world 4x4 matrix at time t [s]; a transform function that raises comes back as
+        ``InvalidParameter`` naming the collider, t and ``frame`` (the World frame being computed)."""
         if self.kinematic:
-            return _check_matrix(self._transform(t), self.name, t)  # type: ignore[operator]
+            M = call_user(self._transform, t, f"collider '{self.name}': transform", frame)
+            return _check_matrix(M, self.name, t, frame)  # type: ignore[arg-type]
         return self._transform  # type: ignore[return-value]
 
     def display_mesh(self, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -219,6 +222,7 @@ class Surfaces:
         self.colliders: tuple[Collider, ...] = tuple(colliders)
         self.up = np.asarray(up, dtype=np.float64)
         self._poses: dict[tuple[int, float], np.ndarray] = {}
+        self.frame: int | None = None  # the World frame being computed (error messages)
 
     def __len__(self) -> int:
         return len(self.colliders)
@@ -229,9 +233,11 @@ class Surfaces:
     def __getitem__(self, i: int) -> Collider:
         return self.colliders[i]
 
-    def new_frame(self) -> None:
-        """Forget the poses of the last frame (a long run must not keep every substep's matrix)."""
+    def new_frame(self, frame: int | None = None) -> None:
+        """Forget the poses of the last frame (a long run must not keep every substep's matrix);
+        ``frame``: the one now computed (named in a transform's error)."""
         self._poses.clear()
+        self.frame = frame
 
     def plane(self, i: int) -> tuple[np.ndarray, float] | None:
         """(normal, height) of an analytic half-space collider, in the World's axes; else None."""
@@ -245,7 +251,7 @@ class Surfaces:
         key = (i, float(t))
         found = self._poses.get(key)
         if found is None:
-            found = self._poses[key] = c.matrix(t)
+            found = self._poses[key] = c.matrix(t, self.frame)
         return found
 
     def velocity(self, i: int, t: float, eps: float) -> tuple[np.ndarray, np.ndarray]:

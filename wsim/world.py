@@ -252,7 +252,7 @@ class World:
 
     def _advance_frame(self) -> None:
         self._bind()
-        self.surfaces.new_frame()
+        self.surfaces.new_frame(self.frame + 1)
         k = self.coupling_steps
         if k > 1:  # bodies that take no part in contact step the whole frame at once
             for body in self.bodies:
@@ -485,7 +485,7 @@ def _couple_surfaces(pusher: Body, targets: Sequence[Body], index: dict[int, int
         if (np.all(np.maximum(p0.max(axis=0), p1.max(axis=0)) >= lo)
                 and np.all(np.minimum(p0.min(axis=0), p1.min(axis=0)) <= hi)):
             mu = pair_friction(getattr(pusher, "friction", None), getattr(b, "friction", None))
-            surfaces.append((index[id(b)], p0, p1, b.faces, mu))
+            surfaces.append((index[id(b)], p0, p1, b.faces, mu, bool(getattr(b, "vertices_kept_out", False))))
     pusher.set_moving_surfaces(surfaces)
 
 

@@ -171,6 +171,11 @@ class BemBody(VertexImpulses, Body):
         **quadrature: quadrature knobs of ``build_operators``.
     """
 
+    # a PBD body that pushes this one also keeps these surface vertices out of its own surface
+    # (``wsim.kernels.pbd_contact.moving_points_contact``), so a corner cannot sink between its
+    # particles; EoL bodies do not ask for it (README, "Explicit coupling": measured unstable)
+    vertices_kept_out = True
+
     def __init__(
         self,
         mesh: Any,

@@ -430,7 +430,10 @@ class EolBody(VertexImpulses, Body):
         sig = super().signature()
         sig.update(resolution=self.resolution, padding=self.padding, quadrature=self.quadrature,
                    grid_cells=[int(c) for c in self._grid0.cells], lagrangian=self.lagrangian, advection=self.advection,
-                   plastic=self.plasticity is not None, split=self.split, collision_block=self.collision_block)
+                   plastic=self.plasticity is not None, split=self.split, collision_block=self.collision_block,
+                   material=self.material.as_key())
+        if self.plasticity is not None:
+            sig.update(yield_stress=self.plasticity.yield_stress, flow_rate=self.plasticity.flow_rate)
         return sig
 
     def set_state(self, arrays: dict[str, np.ndarray]) -> None:
@@ -918,7 +921,7 @@ class EolBody(VertexImpulses, Body):
         d = self._device
         keep = {ms.key: ms for ms in self._moving}
         moving = []
-        for key, p0, p1, faces, mu in surfaces:
+        for key, p0, p1, faces, mu, *_ in surfaces:  # (a PBD pusher's keep_out: not used here)
             p0 = np.asarray(p0, dtype=np.float64)
             ms = keep.get(key)
             if ms is None or ms.p0.shape[0] != len(p0) or ms.n_faces != len(faces):

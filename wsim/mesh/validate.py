@@ -105,6 +105,39 @@ def _check_pieces(v: np.ndarray, f: np.ndarray, p: str, closed: bool, fixes: Seq
     )
 
 
+def _check_fans(v: np.ndarray, f: np.ndarray, p: str, n: int, directed: np.ndarray) -> None:
+    """Every vertex of a closed, edge-manifold, consistently oriented surface is surrounded by one
+    fan of faces: two sheets that touch at a single vertex (two spheres sharing one point) pass
+    the edge tests, but the surface has no one normal there and the shared vertex belongs to both.
+    Around vertex i the corner of face f at i is followed by the corner of the face across the
+    edge from i to f's next vertex (it runs that edge back to i); the corners at i form one cycle
+    for a fan, several for a pinch."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    m = f.shape[0]
+    corner_vertex = f.reshape(-1).astype(np.int64)
+    nxt = f[:, [1, 2, 0]].reshape(-1).astype(np.int64)
+    order = np.argsort(directed)
+    face_of_edge = order // 3  # faces by sorted directed edge
+    back = np.searchsorted(directed[order], nxt * n + corner_vertex)  # the edge next -> i, run back
+    g = face_of_edge[back]
+    # the corner of face g at vertex i: the slot of g holding i
+    slot = np.argmax(f[g] == corner_vertex[:, None], axis=1)
+    follow = 3 * g + slot
+    count, label = connected_components(coo_matrix((np.ones(3 * m), (np.arange(3 * m), follow)), shape=(3 * m, 3 * m)),
+                                         directed=False)
+    fans = np.bincount(np.unique(np.stack([corner_vertex, label], axis=1), axis=0)[:, 0], minlength=n)
+    pinched = np.flatnonzero(fans > 1)
+    if pinched.size:
+        i = int(pinched[0])
+        raise InvalidMesh(
+            f"{p}: non-manifold vertex: {pinched.size} vertices join sheets of the surface that touch only "
+            f"there (e.g. vertex {i} = {_fmt_vec(v[i])}, where {int(fans[i])} fans of faces meet); split the "
+            f"vertex, or make one body per piece"
+        )
+
+
 def _check_closed(v: np.ndarray, f: np.ndarray, p: str, fixes: Sequence[str] = ()) -> None:
     """Watertight, manifold, consistently oriented and outward (positive signed volume)."""
     n = v.shape[0]
@@ -155,6 +188,8 @@ def _check_closed(v: np.ndarray, f: np.ndarray, p: str, fixes: Sequence[str] = (
             f"both of their faces (e.g. face {bad} = {f[bad].tolist()} is flipped relative to its "
             f"neighbour face {other} = {f[other].tolist()}: both traverse edge {e // n}->{e % n})"
         )
+
+    _check_fans(v, f, p, n, directed)
 
     vol = signed_volume(v, f)
     if not vol > 0.0:

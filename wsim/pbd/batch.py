@@ -101,6 +101,7 @@ class PbdBatch:
         self._mesh_colliders: list = []
         self._contact_mesh = None
         self._moving: list = []
+        self._own_surface = None
         self._layout: tuple[int, float] | None = None
         self._graph = None
         self.flags = wp.zeros(2, dtype=int, device=device)

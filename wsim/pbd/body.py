@@ -78,6 +78,19 @@ class _DeviceMeshCollider:
 
 
 @dataclass
+class _OwnSurface:
+    """A body's own surface for the moving surfaces' vertices (``PbdBody._build_own_surface``):
+    its particles' current positions, the triangles, their Warp mesh, how far a query looks and
+    the inside test."""
+
+    points: wp.array
+    indices: wp.array
+    mesh: wp.Mesh
+    reach: float
+    closed: int
+
+
+@dataclass
 class _MovingSurface:
     """Another body's surface that moves on its own over the frame (explicit two-way coupling):
     its vertices at the frame's start and end, where they are at the current substep's start and
@@ -94,6 +107,7 @@ class _MovingSurface:
     reach: float
     impulse: wp.array
     closed: int  # the surface's inside test (``wsim.mesh.inside_test``)
+    keep_out: bool  # its vertices are also kept out of this body's surface (``moving_points_contact``)
 
 
 class PbdBody(Body):
@@ -141,6 +155,9 @@ class PbdBody(Body):
         contact_margin: distance kept from colliders [m] (default 0). With a margin, place the body at
             least that far from colliders: overlap at the start is removed from the contacting
             particles without velocity, but the rest of the body still feels it as a push.
+        friction: Coulomb coefficient against other bodies (the larger of the two bodies' values;
+            None: ``wsim.contact.DEFAULT_FRICTION``, 0.5). Contact with a collider uses the
+            collider's ``friction``.
         cache: store/load the built model through ``wsim.cache`` (True, False or an ``OperatorCache``).
         use_graph: replay each frame as a CUDA graph on CUDA devices.
         conserve_angular_momentum: after each substep, add to the free particles the rigid rotation
@@ -198,6 +215,7 @@ class PbdBody(Body):
         pinned: Sequence[int] | np.ndarray | None = None,
         handles: Sequence[Handle] = (),
         contact_margin: float = 0.0,
+        friction: float | None = None,
         cache: bool | OperatorCache = True,
         use_graph: bool = True,
         conserve_angular_momentum: bool | None = None,
@@ -352,6 +370,9 @@ class PbdBody(Body):
             raise InvalidParameter(f"body '{name}': every particle is pinned or driven; nothing to simulate")
 
         self.contact_margin = finite_number(contact_margin, f"body '{name}': contact_margin [m]")
+        self.friction = None if friction is None else finite_number(friction, f"body '{name}': friction")
+        if self.friction is not None and self.friction < 0.0:
+            raise InvalidParameter(f"body '{name}': friction = {friction} must be >= 0")
         if self.contact_margin < 0.0:
             raise InvalidParameter(f"body '{name}': contact_margin = {contact_margin} m must be >= 0")
         self.use_graph = bool(use_graph)
@@ -534,6 +555,7 @@ class PbdBody(Body):
         self._graph = None
         self._contact_mesh: wp.Mesh | None = None  # its surface, for contact with other bodies (wsim.pbd.contact)
         self._moving: list[_MovingSurface] = []  # other methods' bodies in reach this frame
+        self._own_surface: _OwnSurface | None = None  # this body's surface, while there are moving ones
         self._batch = None  # the PbdBatch that steps this body with others (``wsim.pbd.batch``), if any
 
     def attach_colliders(self, surfaces: Surfaces) -> None:
@@ -848,22 +870,35 @@ class PbdBody(Body):
                 inputs=[self.x_pred, self.dx, self.dxc, self.x_prev, self.inv_mass, ms.mesh.id, ms.prev,
                         self.contact_margin, ms.reach, ms.friction, 1.0 / h, ms.impulse, ms.closed],
             )
+        if self._own_surface is not None:  # and their vertices out of this body's surface (``keep_out``)
+            own = self._own_surface
+            wp.launch(kc.surface_positions, dim=m.n_surface, inputs=[self.x_pred, self.dx, own.points])
+            own.mesh.refit()
+            for ms in (ms for ms in self._moving if ms.keep_out):
+                wp.launch(
+                    kc.moving_points_contact,
+                    dim=ms.cur.shape[0],
+                    inputs=[ms.cur, ms.prev, own.mesh.id, self.x_prev, self.dx, self.dxc, self.inv_mass,
+                            self.contact_margin, own.reach, ms.friction, 1.0 / h, ms.impulse, own.closed],
+                )
 
     def set_moving_surfaces(self, surfaces: Sequence[tuple]) -> None:
         """Surfaces of other bodies that move on their own over the coming frame and may touch this
         one: (key, vertices at the frame start (V, 3), at its end (V, 3), faces (M, 3), friction[,
-        compliance]; the compliance is not used: the partner is kinematic over the interval).
-        Over the frame they move linearly between the two; this body's surface particles are kept
-        out of them like out of a moving collider, and the momentum that takes is collected per
-        vertex (``moving_surface_impulses``) for the World to hand to their bodies. Called by the
-        World before each ``advance``; an empty list ends the coupling."""
+        keep_out]); the partner is kinematic over the interval. Over the frame they move linearly
+        between the two; this body's surface particles are kept out of them like out of a moving
+        collider, and, where ``keep_out`` is true, their vertices out of this body's surface (a
+        corner between particles; ``kernels.pbd_contact.moving_points_contact``). The momentum
+        that takes is collected per vertex (``moving_surface_impulses``) for the World to hand to
+        their bodies. Called by the World before each ``advance``; an empty list ends the coupling."""
         self._require_bound()
         d = self._device
-        layout = [(k, len(p0), len(f)) for k, p0, _, f, *_ in surfaces]
-        if layout != [(ms.key, ms.p0.shape[0], ms.indices.shape[0] // 3) for ms in self._moving]:
+        layout = [(k, len(p0), len(f), bool(rest[0]) if rest else False) for k, p0, _, f, _, *rest in surfaces]
+        if layout != [(ms.key, ms.p0.shape[0], ms.indices.shape[0] // 3, ms.keep_out) for ms in self._moving]:
             self._graph = None  # the frame's launches change
             self._moving = []
-            for key, p0, _, faces, mu, *_ in surfaces:
+            self._own_surface = self._build_own_surface() if any(lay[3] for lay in layout) else None
+            for (key, p0, _, faces, mu, *_), lay in zip(surfaces, layout):
                 f32 = np.ascontiguousarray(faces, dtype=np.int32)
                 test = wmesh.inside_test(f32)  # ray parity for one watertight piece (a third of the cost)
                 cur = wp.array(np.asarray(p0, dtype=np.float32), dtype=wp.vec3, device=d)
@@ -873,7 +908,7 @@ class PbdBody(Body):
                     prev=wp.zeros(len(p0), dtype=wp.vec3, device=d), cur=cur,
                     indices=indices,
                     mesh=wp.Mesh(points=cur, indices=indices, support_winding_number=test == 1), friction=float(mu),
-                    reach=0.0, impulse=wp.zeros(len(p0), dtype=wp.vec3d, device=d), closed=test))
+                    reach=0.0, impulse=wp.zeros(len(p0), dtype=wp.vec3d, device=d), closed=test, keep_out=lay[3]))
                 # how far from the surface a query looks (a particle deep inside is still found);
                 # fixed with the launches, which a CUDA graph records
                 self._moving[-1].reach = 2.0 * float(np.linalg.norm(np.ptp(p0, axis=0))) + self.contact_margin
@@ -881,6 +916,22 @@ class PbdBody(Body):
             ms.p0.assign(np.asarray(p0, dtype=np.float32))
             ms.p1.assign(np.asarray(p1, dtype=np.float32))
             ms.impulse.zero_()
+
+    def _build_own_surface(self) -> _OwnSurface:
+        """This body's surface as a Warp mesh (refit to the particles' current positions before
+        each use), which the moving surfaces' vertices are kept out of (``moving_points_contact``)."""
+        d, n = self._device, self.model.n_surface
+        faces = np.ascontiguousarray(self.model.faces, dtype=np.int32)
+        test = wmesh.inside_test(faces)
+        points = wp.zeros(n, dtype=wp.vec3, device=d)
+        wp.copy(points, self.state.x, count=n)
+        x = points.numpy()
+        # a vertex inside is at most the body's smallest width from its surface: a query looks that
+        # far (1.5x for the body's deformation), and a vertex farther out costs no inside test
+        reach = 1.5 * float(np.ptp(x, axis=0).min()) + self.contact_margin
+        indices = wp.array(faces.ravel(), dtype=wp.int32, device=d)
+        mesh = wp.Mesh(points=points, indices=indices, support_winding_number=test == 1)
+        return _OwnSurface(points=points, indices=indices, mesh=mesh, reach=reach, closed=test)
 
     def moving_surface_impulses(self) -> dict[int, np.ndarray]:
         """Momentum [N s] (V, 3) per vertex that each moving surface received from this body over
