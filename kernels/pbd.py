@@ -61,18 +61,62 @@ def xpbd_delta_lambda(
     return (-C - alpha_t * lam - gamma * dC) / denom
 
 
+@wp.struct
+class Particles4:
+    """What a 4-particle projection reads of its particles, loaded together (``load4``): inverse
+    masses w, the corrections so far d0..d3 (dx), positions x0..x3 (x_pred + dx) and positions at
+    the substep start p0..p3 (x_prev)."""
+
+    w: wp.vec4
+    d0: wp.vec3
+    d1: wp.vec3
+    d2: wp.vec3
+    d3: wp.vec3
+    x0: wp.vec3
+    x1: wp.vec3
+    x2: wp.vec3
+    x3: wp.vec3
+    p0: wp.vec3
+    p1: wp.vec3
+    p2: wp.vec3
+    p3: wp.vec3
+
+
+@wp.func
+def load4(
+    x_pred: wp.array(dtype=wp.vec3),
+    dx: wp.array(dtype=wp.vec3),
+    x_prev: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    ids: wp.vec4i,
+) -> Particles4:
+    """Every load of a 4-particle projection, issued before its first branch (see
+    ``solve_distance``)."""
+    q = Particles4()
+    q.w = wp.vec4(inv_mass[ids[0]], inv_mass[ids[1]], inv_mass[ids[2]], inv_mass[ids[3]])
+    q.d0 = dx[ids[0]]
+    q.d1 = dx[ids[1]]
+    q.d2 = dx[ids[2]]
+    q.d3 = dx[ids[3]]
+    q.x0 = x_pred[ids[0]] + q.d0
+    q.x1 = x_pred[ids[1]] + q.d1
+    q.x2 = x_pred[ids[2]] + q.d2
+    q.x3 = x_pred[ids[3]] + q.d3
+    q.p0 = x_prev[ids[0]]
+    q.p1 = x_prev[ids[1]]
+    q.p2 = x_prev[ids[2]]
+    q.p3 = x_prev[ids[3]]
+    return q
+
+
 @wp.func
 def project4(
     dx: wp.array(dtype=wp.vec3),
     lam: wp.array(dtype=float),
     c: int,
     ids: wp.vec4i,
-    w: wp.vec4,
+    q: Particles4,
     lam_c: float,
-    d0: wp.vec3,
-    d1: wp.vec3,
-    d2: wp.vec3,
-    d3: wp.vec3,
     g0: wp.vec3,
     g1: wp.vec3,
     g2: wp.vec3,
@@ -87,10 +131,10 @@ def project4(
     omega: float,
 ):
     """One XPBD projection of a 4-particle constraint with value C, change dC over the substep and
-    gradients g0..g3 (module docstring), given the particles' inverse masses w, their corrections
-    so far d0..d3 (dx) and the multiplier lam_c (loaded by the caller with everything else, see
-    ``solve_distance``); the correction is added to ``dx``, or in the Jacobi mode (omega > 0,
-    module docstring) scaled and added to ``acc``."""
+    gradients g0..g3 (module docstring), given its particles ``q`` and multiplier lam_c (loaded
+    by the caller with everything else, ``load4``); the correction is added to ``dx``, or in the
+    Jacobi mode (omega > 0, module docstring) scaled and added to ``acc``."""
+    w = q.w
     w_grad2 = w[0] * wp.dot(g0, g0) + w[1] * wp.dot(g1, g1) + w[2] * wp.dot(g2, g2) + w[3] * wp.dot(g3, g3)
     dl = xpbd_delta_lambda(C, lam_c, w_grad2, dC, compliance, beta, h)
     if omega > 0.0:
@@ -102,10 +146,10 @@ def project4(
         wp.atomic_add(acc, ids[3], g3 * (w[3] * dl))
         return
     lam[c] = lam_c + dl
-    dx[ids[0]] = d0 + g0 * (w[0] * dl)
-    dx[ids[1]] = d1 + g1 * (w[1] * dl)
-    dx[ids[2]] = d2 + g2 * (w[2] * dl)
-    dx[ids[3]] = d3 + g3 * (w[3] * dl)
+    dx[ids[0]] = q.d0 + g0 * (w[0] * dl)
+    dx[ids[1]] = q.d1 + g1 * (w[1] * dl)
+    dx[ids[2]] = q.d2 + g2 * (w[2] * dl)
+    dx[ids[3]] = q.d3 + g3 * (w[3] * dl)
 
 
 @wp.kernel
@@ -454,25 +498,16 @@ def solve_bending(
     """
     c = wp.tid() + offset
     ids = hinges[c]
-    # every load before the first branch (see solve_distance)
-    w = wp.vec4(inv_mass[ids[0]], inv_mass[ids[1]], inv_mass[ids[2]], inv_mass[ids[3]])
-    d0 = dx[ids[0]]
-    d1 = dx[ids[1]]
-    d2 = dx[ids[2]]
-    d3 = dx[ids[3]]
-    w1 = x_pred[ids[0]] + d0
-    w2 = x_pred[ids[1]] + d1
-    e0 = x_pred[ids[2]] + d2
-    e1 = x_pred[ids[3]] + d3
-    p0 = x_prev[ids[0]]
-    p1 = x_prev[ids[1]]
-    p2 = x_prev[ids[2]]
-    p3 = x_prev[ids[3]]
+    q = load4(x_pred, dx, x_prev, inv_mass, ids)  # every load before the first branch
     lam_c = lam[c]
     rest_c = rest[c]
     compliance_c = compliance[c]
-    if w[0] + w[1] + w[2] + w[3] == 0.0:
+    if q.w[0] + q.w[1] + q.w[2] + q.w[3] == 0.0:
         return
+    w1 = q.x0
+    w2 = q.x1
+    e0 = q.x2
+    e1 = q.x3
     E = e1 - e0
     len2 = wp.dot(E, E)
     n1 = wp.cross(E, w1 - e0)
@@ -492,9 +527,8 @@ def solve_bending(
     theta = wp.atan2(wp.dot(wp.cross(n1, n2), E) / elen, wp.dot(n1, n2))
     # keep C in (-pi, pi] so a hinge that passes through +-pi is pulled the short way round
     C = wrap_angle(theta - rest_c)
-    dC = wrap_angle(theta - dihedral(p0, p1, p2, p3))
-    project4(dx, lam, c, ids, w, lam_c, d0, d1, d2, d3, g1, g2, g3, g4, C, dC, compliance_c, beta, h, acc, count,
-             omega)
+    dC = wrap_angle(theta - dihedral(q.p0, q.p1, q.p2, q.p3))
+    project4(dx, lam, c, ids, q, lam_c, g1, g2, g3, g4, C, dC, compliance_c, beta, h, acc, count, omega)
 
 
 @wp.func
@@ -526,36 +560,23 @@ def solve_tet_volume(
     """
     c = wp.tid() + offset
     ids = tets[c]
-    # every load before the first branch (see solve_distance)
-    w = wp.vec4(inv_mass[ids[0]], inv_mass[ids[1]], inv_mass[ids[2]], inv_mass[ids[3]])
-    c0 = dx[ids[0]]
-    c1 = dx[ids[1]]
-    c2 = dx[ids[2]]
-    c3 = dx[ids[3]]
-    x0 = x_pred[ids[0]] + c0
-    x1 = x_pred[ids[1]] + c1
-    x2 = x_pred[ids[2]] + c2
-    x3 = x_pred[ids[3]] + c3
-    p0 = x_prev[ids[0]]
-    p1 = x_prev[ids[1]]
-    p2 = x_prev[ids[2]]
-    p3 = x_prev[ids[3]]
+    q = load4(x_pred, dx, x_prev, inv_mass, ids)  # every load before the first branch
     lam_c = lam[c]
     rest_c = rest[c]
     compliance_c = compliance[c]
-    if w[0] + w[1] + w[2] + w[3] == 0.0:
+    if q.w[0] + q.w[1] + q.w[2] + q.w[3] == 0.0:
         return
-    d1 = x1 - x0
-    d2 = x2 - x0
-    d3 = x3 - x0
+    x0 = q.x0
+    d1 = q.x1 - x0
+    d2 = q.x2 - x0
+    d3 = q.x3 - x0
     g1 = wp.cross(d2, d3) / 6.0
     g2 = wp.cross(d3, d1) / 6.0
     g3 = wp.cross(d1, d2) / 6.0
     V = wp.dot(d1, g1)
     C = V - rest_c
-    dC = V - tet_volume6(p0, p1, p2, p3) / 6.0
-    project4(dx, lam, c, ids, w, lam_c, c0, c1, c2, c3, -(g1 + g2 + g3), g1, g2, g3, C, dC, compliance_c, beta, h,
-             acc, count, omega)
+    dC = V - tet_volume6(q.p0, q.p1, q.p2, q.p3) / 6.0
+    project4(dx, lam, c, ids, q, lam_c, -(g1 + g2 + g3), g1, g2, g3, C, dC, compliance_c, beta, h, acc, count, omega)
 
 
 #: threads per block of the volume reduction (one float64 atomic per block and sum)
