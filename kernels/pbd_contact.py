@@ -276,6 +276,7 @@ def moving_points_contact(
     dx: wp.array(dtype=wp.vec3),
     dxc: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
+    inv_mass_v: wp.array(dtype=float),
     margin: float,
     max_dist: float,
     mu: float,
@@ -284,30 +285,33 @@ def moving_points_contact(
     closed: int,
 ):
     """The other way round from ``moving_surface_contact``: a vertex p of another body's moving
-    surface (``points`` at the end of the substep, ``points_prev`` at its start; kinematic over
-    the frame) against this body's own current surface (``mesh``: its surface particles'
-    positions x_pred + dx; ``closed``: its inside test), so that a corner of the other body cannot
-    pass between this body's particles. With s = sum_k b_k q_k the nearest point of this surface
-    and n its outward normal, C = n . (p - s) - margin >= 0; p cannot move, so the triangle's
-    particles move by -b_k w_k / W c, W = sum_k b_k^2 w_k, c = n depth + the Coulomb correction of
-    the slip of p relative to s over the substep: s moves by -c. The momentum that takes from this
-    body, sum over free k of b_k c / (W h), is the vertex's ``impulse`` [N s] (handed to the other
-    body by the World, as for the particles' own contacts). One thread per vertex; the particles
-    take atomic adds (several vertices may press on one triangle)."""
+    surface (``points`` at the end of the substep, ``points_prev`` at its start) against this
+    body's own current surface (``mesh``: its surface particles' positions x_pred + dx; ``closed``:
+    its inside test), so that a corner of the other body cannot pass between this body's
+    particles. With s = sum_k b_k q_k the nearest point of this surface and n its outward normal,
+    C = n . (p - s) - margin >= 0, and c = n depth + the Coulomb correction of the slip of p
+    relative to s over the substep is the wanted change of p - s. As between two PBD bodies
+    (``body_contact``) it is shared by inverse mass, W = w_v + sum_k b_k^2 w_k with w_v the
+    vertex's (``inv_mass_v``: its lumped share of the other body's mass): the triangle's particles
+    move by -b_k w_k / W c now; the vertex's share, c w_v / W, is the momentum c / W handed to it
+    (``impulse`` [N s], by the World, one interval late, as for the particles' own contacts), the
+    opposite of what this body's free particles took. A vertex treated as immovable (w_v = 0) made
+    heavy particles of a coarse body throw a resting light body off. One thread per vertex; the
+    particles take atomic adds (several vertices may press on one triangle)."""
     j = wp.tid()
     p = points[j]
     depth, s, n, face, b = surface_contact(mesh, p, max_dist, margin, closed)
     if depth <= 0.0:
         return
     tri = face_vertices(mesh, face)
-    W = float(0.0)
+    W = inv_mass_v[j]
     free = float(0.0)
     for k in range(3):
         w_k = inv_mass[tri[k]]
         W += b[k] * b[k] * w_k
         if w_k > 0.0:
             free += b[k]
-    if W <= 0.0:
+    if free <= 0.0 or W <= 0.0:  # a triangle of pinned or driven particles only: nothing to push
         return
     s_prev = b[0] * x_prev[tri[0]] + b[1] * x_prev[tri[1]] + b[2] * x_prev[tri[2]]
     rel = (p + n * depth - points_prev[j]) - (s - s_prev)

@@ -108,6 +108,7 @@ class _MovingSurface:
     impulse: wp.array
     closed: int  # the surface's inside test (``wsim.mesh.inside_test``)
     keep_out: bool  # its vertices are also kept out of this body's surface (``moving_points_contact``)
+    inv_mass_v: wp.array | None  # then: its vertices' inverse lumped masses [1/kg]
 
 
 class PbdBody(Body):
@@ -879,26 +880,30 @@ class PbdBody(Body):
                     kc.moving_points_contact,
                     dim=ms.cur.shape[0],
                     inputs=[ms.cur, ms.prev, own.mesh.id, self.x_prev, self.dx, self.dxc, self.inv_mass,
-                            self.contact_margin, own.reach, ms.friction, 1.0 / h, ms.impulse, own.closed],
+                            ms.inv_mass_v, self.contact_margin, own.reach, ms.friction, 1.0 / h, ms.impulse,
+                            own.closed],
                 )
 
     def set_moving_surfaces(self, surfaces: Sequence[tuple]) -> None:
         """Surfaces of other bodies that move on their own over the coming frame and may touch this
         one: (key, vertices at the frame start (V, 3), at its end (V, 3), faces (M, 3), friction[,
-        keep_out]); the partner is kinematic over the interval. Over the frame they move linearly
-        between the two; this body's surface particles are kept out of them like out of a moving
-        collider, and, where ``keep_out`` is true, their vertices out of this body's surface (a
-        corner between particles; ``kernels.pbd_contact.moving_points_contact``). The momentum
-        that takes is collected per vertex (``moving_surface_impulses``) for the World to hand to
-        their bodies. Called by the World before each ``advance``; an empty list ends the coupling."""
+        vertex masses (V,) or None]); the partner is kinematic over the interval. Over the frame
+        they move linearly between the two; this body's surface particles are kept out of them like
+        out of a moving collider, and where the vertices' lumped masses are given (a BEM body's),
+        those vertices out of this body's surface, if it is closed (a corner between particles;
+        ``kernels.pbd_contact.moving_points_contact``). The momentum that takes is collected per
+        vertex (``moving_surface_impulses``) for the World to hand to their bodies. Called by the
+        World before each ``advance``; an empty list ends the coupling."""
         self._require_bound()
         d = self._device
-        layout = [(k, len(p0), len(f), bool(rest[0]) if rest else False) for k, p0, _, f, _, *rest in surfaces]
+        masses = [rest[0] if rest else None for *_, rest in ((s[:5], s[5:]) for s in surfaces)]
+        closed = len(self.model.faces) > 0 and not wmesh.has_boundary(self.model.faces)
+        layout = [(k, len(p0), len(f), closed and m is not None) for (k, p0, _, f, *_), m in zip(surfaces, masses)]
         if layout != [(ms.key, ms.p0.shape[0], ms.indices.shape[0] // 3, ms.keep_out) for ms in self._moving]:
             self._graph = None  # the frame's launches change
             self._moving = []
             self._own_surface = self._build_own_surface() if any(lay[3] for lay in layout) else None
-            for (key, p0, _, faces, mu, *_), lay in zip(surfaces, layout):
+            for (key, p0, _, faces, mu, *_), lay, m in zip(surfaces, layout, masses):
                 f32 = np.ascontiguousarray(faces, dtype=np.int32)
                 test = wmesh.inside_test(f32)  # ray parity for one watertight piece (a third of the cost)
                 cur = wp.array(np.asarray(p0, dtype=np.float32), dtype=wp.vec3, device=d)
@@ -908,7 +913,9 @@ class PbdBody(Body):
                     prev=wp.zeros(len(p0), dtype=wp.vec3, device=d), cur=cur,
                     indices=indices,
                     mesh=wp.Mesh(points=cur, indices=indices, support_winding_number=test == 1), friction=float(mu),
-                    reach=0.0, impulse=wp.zeros(len(p0), dtype=wp.vec3d, device=d), closed=test, keep_out=lay[3]))
+                    reach=0.0, impulse=wp.zeros(len(p0), dtype=wp.vec3d, device=d), closed=test, keep_out=lay[3],
+                    inv_mass_v=wp.array((1.0 / np.asarray(m, dtype=np.float64)).astype(np.float32), dtype=float,
+                                        device=d) if lay[3] else None))
                 # how far from the surface a query looks (a particle deep inside is still found);
                 # fixed with the launches, which a CUDA graph records
                 self._moving[-1].reach = 2.0 * float(np.linalg.norm(np.ptp(p0, axis=0))) + self.contact_margin
