@@ -158,7 +158,8 @@ class PbdBody(Body):
             particles without velocity, but the rest of the body still feels it as a push.
         friction: Coulomb coefficient against other bodies (the larger of the two bodies' values;
             None: ``wsim.contact.DEFAULT_FRICTION``, 0.5). Contact with a collider uses the
-            collider's ``friction``.
+            collider's ``friction``. Give it here: a contact records it when the bodies come into
+            reach (and a CUDA graph of their frame bakes it in).
         cache: store/load the built model through ``wsim.cache`` (True, False or an ``OperatorCache``).
         use_graph: replay each frame as a CUDA graph on CUDA devices.
         conserve_angular_momentum: after each substep, add to the free particles the rigid rotation
