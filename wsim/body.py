@@ -107,6 +107,10 @@ class Body(ABC):
         """Total kinetic energy 1/2 sum m |v|^2 [J]."""
         raise NotImplementedError(f"{type(self).__name__} does not report kinetic energy")
 
+    def center_of_mass(self) -> np.ndarray:
+        """The body's centre of mass [m] (world): the point ``angular_momentum()`` is taken about."""
+        raise NotImplementedError(f"{type(self).__name__} does not report its centre of mass")
+
     # -- state --------------------------------------------------------------------------------
     def get_state(self) -> dict[str, np.ndarray]:
         """A copy of the body's state as named host arrays (what a checkpoint stores)."""

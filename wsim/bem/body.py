@@ -392,6 +392,13 @@ class BemBody(VertexImpulses, Body):
         self._sync()
         return self.mass * self.state.material_velocity
 
+    def center_of_mass(self) -> np.ndarray:
+        """The frame's origin T [m] (world): the centre of mass of the body, which the frame
+        carries (the error correction keeps the displacement u free of rigid motion)."""
+        self._require_bound()
+        self._sync()
+        return self.state.frame.T.copy()
+
     def angular_momentum(self, about: Sequence[float] | None = None) -> np.ndarray:
         """L = I_world omega [kg m^2/s] (world) about the centre of mass, or about the world point
         ``about`` (L + (T - p) x m v), from the material's motion like ``linear_momentum``. On a

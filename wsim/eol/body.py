@@ -555,6 +555,12 @@ class EolBody(VertexImpulses, Body):
         p = (m @ x) / m.sum() if about is None else as_vec3(about, f"body '{self.name}': about")
         return (m[:, None] * np.cross(x - p, self.node_world_velocities())).sum(axis=0)
 
+    def center_of_mass(self) -> np.ndarray:
+        """sum_s m_s x_s / sum_s m_s over the nodes [m] (world), with the lumped masses that
+        ``linear_momentum`` sums: it moves at linear_momentum() / their total."""
+        m = self.node_masses()
+        return (m @ self.node_world_positions()) / m.sum()
+
     def kinetic_energy(self) -> float:
         m = self.node_masses()
         return 0.5 * float(m @ np.einsum("ij,ij->i", w := self.node_world_velocities(), w))
