@@ -470,24 +470,24 @@ def wrap_angle(a: float) -> float:
     return b
 
 
-@wp.kernel
-def solve_bending(
-    x_pred: wp.array(dtype=wp.vec3),
+@wp.func
+def project_hinge(
     dx: wp.array(dtype=wp.vec3),
-    x_prev: wp.array(dtype=wp.vec3),
-    inv_mass: wp.array(dtype=float),
-    hinges: wp.array(dtype=wp.vec4i),
-    rest: wp.array(dtype=float),
-    compliance: wp.array(dtype=float),
     lam: wp.array(dtype=float),
-    offset: int,
+    c: int,
+    ids: wp.vec4i,
+    q: Particles4,
+    lam_c: float,
+    rest_c: float,
+    compliance_c: float,
     beta: float,
     h: float,
     acc: wp.array(dtype=wp.vec3),
     count: wp.array(dtype=float),
     omega: float,
 ):
-    """Dihedral bending, [PBD] §4.2 with the angle gradient of Bridson et al. (SCA 2003):
+    """Dihedral bending, [PBD] §4.2 with the angle gradient of Bridson et al. (SCA 2003), of hinge
+    c with particles ``q`` (wing w1, wing w2, edge e0, edge e1):
 
     theta is the signed angle between the faces (e0, e1, w1) and (e1, e0, w2): 0 for a flat hinge.
     C = theta - theta0 (wrapped to (-pi, pi]); with E = e1 - e0, n1 = E x (w1 - e0),
@@ -496,14 +496,6 @@ def solve_bending(
         grad_e0 = -((1 - t1) grad_w1 + (1 - t2) grad_w2),  grad_e1 = -(t1 grad_w1 + t2 grad_w2).
     Compliance [rad/(N m)] (the inverse of a hinge stiffness).
     """
-    c = wp.tid() + offset
-    ids = hinges[c]
-    q = load4(x_pred, dx, x_prev, inv_mass, ids)  # every load before the first branch
-    lam_c = lam[c]
-    rest_c = rest[c]
-    compliance_c = compliance[c]
-    if q.w[0] + q.w[1] + q.w[2] + q.w[3] == 0.0:
-        return
     w1 = q.x0
     w2 = q.x1
     e0 = q.x2
@@ -529,6 +521,91 @@ def solve_bending(
     C = wrap_angle(theta - rest_c)
     dC = wrap_angle(theta - dihedral(q.p0, q.p1, q.p2, q.p3))
     project4(dx, lam, c, ids, q, lam_c, g1, g2, g3, g4, C, dC, compliance_c, beta, h, acc, count, omega)
+
+
+@wp.kernel
+def solve_bending(
+    x_pred: wp.array(dtype=wp.vec3),
+    dx: wp.array(dtype=wp.vec3),
+    x_prev: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    hinges: wp.array(dtype=wp.vec4i),
+    rest: wp.array(dtype=float),
+    compliance: wp.array(dtype=float),
+    lam: wp.array(dtype=float),
+    offset: int,
+    beta: float,
+    h: float,
+    acc: wp.array(dtype=wp.vec3),
+    count: wp.array(dtype=float),
+    omega: float,
+):
+    """Hinges offset + tid (``project_hinge``)."""
+    c = wp.tid() + offset
+    ids = hinges[c]
+    q = load4(x_pred, dx, x_prev, inv_mass, ids)  # every load before the first branch
+    lam_c = lam[c]
+    rest_c = rest[c]
+    compliance_c = compliance[c]
+    if q.w[0] + q.w[1] + q.w[2] + q.w[3] == 0.0:
+        return
+    project_hinge(dx, lam, c, ids, q, lam_c, rest_c, compliance_c, beta, h, acc, count, omega)
+
+
+@wp.kernel
+def solve_hinge_edge(
+    x_pred: wp.array(dtype=wp.vec3),
+    dx: wp.array(dtype=wp.vec3),
+    x_prev: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    hinges: wp.array(dtype=wp.vec4i),
+    rest: wp.array(dtype=float),
+    compliance: wp.array(dtype=float),
+    lam: wp.array(dtype=float),
+    offset: int,
+    beta: float,
+    h: float,
+    edge: wp.array(dtype=wp.int32),
+    edge_rest: wp.array(dtype=float),
+    edge_compliance: wp.array(dtype=float),
+    edge_lam: wp.array(dtype=float),
+):
+    """Hinge offset + tid with the stretch of its own edge (e0, e1) first, in one thread
+    (Gauss-Seidel; ``PbdBody`` pairs each hinge with its edge's distance constraint, ``edge[c]``,
+    -1 for none): the edge projection of ``solve_distance`` on the particles already in registers,
+    then ``project_hinge`` on the corrected positions. An edge shares its particles with its hinge
+    only, so the hinge colouring holds both, and the distance colours these edges took are not
+    launched: a frame launches the hinge colours alone."""
+    c = wp.tid() + offset
+    ids = hinges[c]
+    k = edge[c]
+    q = load4(x_pred, dx, x_prev, inv_mass, ids)  # every load before the first branch
+    lam_c = lam[c]
+    rest_c = rest[c]
+    compliance_c = compliance[c]
+    kk = wp.max(k, 0)
+    lam_e = edge_lam[kk]
+    rest_e = edge_rest[kk]
+    compliance_e = edge_compliance[kk]
+    if q.w[0] + q.w[1] + q.w[2] + q.w[3] == 0.0:
+        return
+    wi = q.w[2]
+    wj = q.w[3]
+    if k >= 0 and wi + wj > 0.0:
+        d = q.x2 - q.x3
+        length = wp.length(d)
+        if length >= 1.0e-12:
+            n = d / length
+            dl = xpbd_delta_lambda(length - rest_e, lam_e, wi + wj, length - wp.length(q.p2 - q.p3), compliance_e,
+                                   beta, h)
+            edge_lam[k] = lam_e + dl
+            q.d2 = q.d2 + n * (wi * dl)
+            q.d3 = q.d3 - n * (wj * dl)
+            q.x2 = q.x2 + n * (wi * dl)
+            q.x3 = q.x3 - n * (wj * dl)
+            dx[ids[2]] = q.d2  # kept should the hinge be degenerate (project_hinge returns early)
+            dx[ids[3]] = q.d3
+    project_hinge(dx, lam, c, ids, q, lam_c, rest_c, compliance_c, beta, h, dx, edge_lam, 0.0)
 
 
 @wp.func

@@ -130,7 +130,8 @@ def run_case(size: str, tets: bool, device: str | None, frames: int, reference_f
             t_start = (f0 + k) / 30.0
             targets = lambda s: body.handles[0].targets(t_start + s / (30.0 * 10), rest_head)  # noqa: E731
             reference.run_frame(
-                body.model, x, vel, inv_mass, world.gravity, 1 / 30, 10, 2, body.damping, (), 0.0, (head, targets)
+                body.model, x, vel, inv_mass, world.gravity, 1 / 30, 10, 2, body.damping, (), 0.0, (head, targets),
+                hinge_edges=any(f.edge is not None for f in body._families),  # the body's projection order
             )
 
         t0 = time.perf_counter()

@@ -37,6 +37,8 @@ def batch_key(body: PbdBody) -> tuple | None:
     """What a batch's launches bake in, equal for its members; None: the body steps alone."""
     if body.handles or body.model.volume is not None or body.solver != "gauss_seidel":
         return None
+    if any(f.edge is not None for f in body._families):  # hinges with their edges: launched alone
+        return None
     return (body._device.alias, body.substeps, body.dt, body.iterations, body.damping, body.drag,
             body.contact_margin, body.use_graph, body._cpu_serial_sweep, body._block_dim)
 

@@ -97,6 +97,39 @@ class ConstraintFamily:
                                 offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64))
 
 
+def hinge_edge_layout(d: ConstraintFamily, b: ConstraintFamily, n: int) -> tuple[ConstraintFamily, np.ndarray]:
+    """Each hinge of ``b`` paired with its edge's distance constraint in ``d`` (n particles), to
+    be projected together (``kernels.pbd.solve_hinge_edge``): the distance family reordered as
+    its unpaired constraints in their colours (boundary edges, springs) followed by the paired
+    ones, outside every colour (``offsets`` cover the unpaired only), and each hinge's edge index
+    in it, -1 for none. An edge goes to one hinge (the first; a closed manifold surface has one
+    hinge per edge)."""
+    pair = np.sort(np.asarray(d.indices, dtype=np.int64), axis=1)
+    key = pair[:, 0] * n + pair[:, 1]
+    hinge_edge = np.sort(np.asarray(b.indices, dtype=np.int64)[:, 2:4], axis=1)
+    want = hinge_edge[:, 0] * n + hinge_edge[:, 1]
+    order = np.argsort(key, kind="stable")
+    at = np.minimum(np.searchsorted(key[order], want), len(key) - 1)
+    edge = np.where(key[order][at] == want, order[at], -1)
+    taken = np.flatnonzero(edge >= 0)
+    _, first = np.unique(edge[taken], return_index=True)
+    keep = np.zeros(len(edge), dtype=bool)
+    keep[taken[first]] = True
+    edge[~keep] = -1
+    covered = np.zeros(d.count, dtype=bool)
+    covered[edge[edge >= 0]] = True
+    unpaired, paired = np.flatnonzero(~covered), np.flatnonzero(covered)
+    perm = np.concatenate([unpaired, paired])
+    colour = np.repeat(np.arange(d.colours), np.diff(d.offsets))
+    counts = np.bincount(colour[unpaired], minlength=d.colours)
+    counts = counts[counts > 0]
+    new_of_old = np.empty(d.count, dtype=np.int64)
+    new_of_old[perm] = np.arange(d.count)
+    fused = ConstraintFamily(kind="distance", indices=d.indices[perm], rest=d.rest[perm], compliance=d.compliance[perm],
+                             offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64))
+    return fused, np.where(edge >= 0, new_of_old[np.maximum(edge, 0)], -1).astype(np.int32)
+
+
 @dataclass(frozen=True)
 class GlobalVolume:
     """Enclosed-volume constraint C = V(x) - inflation * V0 on the closed surface.

@@ -14,7 +14,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from wsim.pbd.model import ConstraintFamily, PbdModel
+from wsim.pbd.model import ConstraintFamily, PbdModel, hinge_edge_layout
 
 
 def _delta_lambda(C, lam, w_grad2, dC, alpha, beta, h):
@@ -129,6 +129,26 @@ def _ground(x, x_prev, x_pred, w, normal, height, margin, mu) -> None:
     x[hit] = p - dx_t * np.where(t_len > 0, scale, 0.0)[:, None]
 
 
+def _project_hinges_with_edges(b: ConstraintFamily, d: ConstraintFamily, edge: np.ndarray, x, x_prev, w, lam_b,
+                               lam_d, beta, h) -> None:
+    """Colour by colour: the colour's hinges' edges (distance constraints of ``d``), then the
+    hinges; an edge's particles are its hinge's, so within a colour this is each hinge's edge
+    right before it (``kernels.pbd.solve_hinge_edge``)."""
+    for c in range(b.colours):
+        lo, hi = int(b.offsets[c]), int(b.offsets[c + 1])
+        k = edge[lo:hi]
+        k = k[k >= 0]
+        if len(k):
+            part = ConstraintFamily(kind="distance", indices=d.indices[k], rest=d.rest[k], compliance=d.compliance[k],
+                                    offsets=np.array([0, len(k)]))
+            lam = lam_d[k]
+            _project_family(part, x, x_prev, w, lam, beta, h)
+            lam_d[k] = lam
+        hinges = ConstraintFamily(kind="bending", indices=b.indices[lo:hi], rest=b.rest[lo:hi],
+                                  compliance=b.compliance[lo:hi], offsets=np.array([0, hi - lo]))
+        _project_family(hinges, x, x_prev, w, lam_b[lo:hi], beta, h)
+
+
 def run_frame(
     model: PbdModel,
     x: np.ndarray,
@@ -142,12 +162,21 @@ def run_frame(
     planes: Sequence[tuple[np.ndarray, float, float]] = (),
     margin: float = 0.0,
     kinematic: tuple[np.ndarray, Callable[[int], np.ndarray]] | None = None,
+    hinge_edges: bool = False,
 ) -> None:
     """Advance (x, v) in place by one frame of ``substeps`` substeps.
 
     ``planes`` are (unit normal, height, friction); ``kinematic`` is (indices, s -> (K, 3) targets
-    at the end of substep s = 1..substeps).
+    at the end of substep s = 1..substeps). ``hinge_edges``: each hinge's edge is projected just
+    before it, colour by colour (``wsim.pbd.model.hinge_edge_layout``; what ``PbdBody`` does for a
+    surface body with stretch and bending).
     """
+    families: list[ConstraintFamily] = list(model.families)
+    edge = None
+    kinds = {f.kind: f for f in families}
+    if hinge_edges and "distance" in kinds and "bending" in kinds:
+        fused, edge = hinge_edge_layout(kinds["distance"], kinds["bending"], model.n_particles)
+        families = [fused if f is kinds["distance"] else f for f in families]
     h = frame_dt / substeps
     free = inv_mass > 0.0
     for s in range(1, substeps + 1):
@@ -158,11 +187,15 @@ def run_frame(
         x_pred = x.copy()  # kinematic particles: x_pred = x_prev, so they get their handle's velocity
         if kinematic is not None:
             x[kinematic[0]] = kinematic[1](s)
-        lams = [np.zeros(f.count) for f in model.families]
+        lams = [np.zeros(f.count) for f in families]
         lam_v = [0.0]
         for _ in range(iterations):
-            for f, lam in zip(model.families, lams):
-                _project_family(f, x, x_prev, inv_mass, lam, damping, h)
+            for f, lam in zip(families, lams):
+                if f.kind == "bending" and edge is not None:
+                    di = next(i for i, g in enumerate(families) if g.kind == "distance")
+                    _project_hinges_with_edges(f, families[di], edge, x, x_prev, inv_mass, lam, lams[di], damping, h)
+                else:
+                    _project_family(f, x, x_prev, inv_mass, lam, damping, h)
             if model.volume is not None:
                 _project_volume(model, x, inv_mass, lam_v, h)
             for normal, height, mu in planes:
