@@ -100,8 +100,10 @@ def run_case(size: str, tets: bool, device: str | None, frames: int, reference_f
         "particles": int(body.model.n_particles),
         "constraints": {f.kind: f.count for f in body.model.families} | ({"volume": 1} if body.model.volume else {}),
         "colours": {f.kind: f.colours for f in body.model.families},
-        # the colours launched: those holding a constraint with a free particle (ConstraintFamily.active)
+        # the colours holding a constraint with a free particle (ConstraintFamily.active), and those
+        # launched (a surface body's hinges project their edges: no distance colours of their own)
         "colours_projected": {f.kind: f.colours for f in body._active_families},
+        "colours_launched": {f.kind: len(f.offsets) - 1 for f in body._families},
         "substeps": 10,
         "iterations": 2,
         "frames": frames,
