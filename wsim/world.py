@@ -485,7 +485,7 @@ def _couple_surfaces(pusher: Body, targets: Sequence[Body], index: dict[int, int
         if (np.all(np.maximum(p0.max(axis=0), p1.max(axis=0)) >= lo)
                 and np.all(np.minimum(p0.min(axis=0), p1.min(axis=0)) <= hi)):
             mu = pair_friction(getattr(pusher, "friction", None), getattr(b, "friction", None))
-            # a BEM body's vertices are also kept out of a PBD pusher's surface, shared by their masses
+            # a pushed body's vertices are also kept out of a PBD pusher's surface (``VertexImpulses``)
             kept = getattr(b, "vertices_kept_out", False)
             surfaces.append((index[id(b)], p0, p1, b.faces, mu, b.vertex_masses() if kept else None))
     pusher.set_moving_surfaces(surfaces)

@@ -171,11 +171,6 @@ class BemBody(VertexImpulses, Body):
         **quadrature: quadrature knobs of ``build_operators``.
     """
 
-    # a PBD body that pushes this one also keeps these surface vertices out of its own surface
-    # (``wsim.kernels.pbd_contact.moving_points_contact``, with ``vertex_masses``), so a corner
-    # cannot sink between its particles; EoL bodies do not ask for it (README, "Explicit coupling")
-    vertices_kept_out = True
-
     def __init__(
         self,
         mesh: Any,
@@ -332,14 +327,6 @@ class BemBody(VertexImpulses, Body):
     @property
     def mass(self) -> float:
         return self._props.mass
-
-    def vertex_masses(self) -> np.ndarray:
-        """(V,) the body's mass lumped onto its surface vertices by their areas [kg] (a vertex's
-        share in a contact that another body resolves, ``moving_points_contact``)."""
-        if getattr(self, "_vertex_masses", None) is None:
-            areas = wmesh.vertex_areas(self.rest_vertices, self.faces)  # the vertices points() gives
-            self._vertex_masses = self.mass * areas / areas.sum()
-        return self._vertex_masses
 
     @property
     def steps(self) -> int:

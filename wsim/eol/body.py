@@ -237,11 +237,6 @@ class EolBody(VertexImpulses, Body):
     (``SimulationDiverged``, "material left the grid").
     """
 
-    # a PBD body that pushes this one also keeps these surface vertices out of its own surface,
-    # the correction shared by mass (``wsim.kernels.pbd_contact.moving_points_contact``,
-    # ``vertex_masses``): an EoL cube sank 40 mm between the particles of a coarse PBD box
-    vertices_kept_out = True
-
     def __init__(
         self,
         mesh: Any,
@@ -473,15 +468,6 @@ class EolBody(VertexImpulses, Body):
 
     def points(self) -> np.ndarray:
         return self.intermediate_vertices() @ self.state.F.T + self.state.T
-
-    def vertex_masses(self) -> np.ndarray:
-        """(V,) the body's mass lumped onto its surface vertices by their areas on the surface as
-        first placed [kg] (a vertex's share in a contact that another body resolves,
-        ``moving_points_contact``)."""
-        if getattr(self, "_vertex_masses", None) is None:
-            areas = wmesh.vertex_areas(self.points(), self.faces)
-            self._vertex_masses = self.mass * areas / areas.sum()
-        return self._vertex_masses
 
     def eulerian_velocity(self) -> np.ndarray:
         """(n_nodes, 3) Eulerian velocities v [m/s] (zero on nodes without mass)."""

@@ -570,6 +570,7 @@ class PbdBody(Body):
         self._contact_mesh: wp.Mesh | None = None  # its surface, for contact with other bodies (wsim.pbd.contact)
         self._moving: list[_MovingSurface] = []  # other methods' bodies in reach this frame
         self._own_surface: _OwnSurface | None = None  # this body's surface, while there are moving ones
+        self._surface_closed: bool | None = None  # whether it can keep other bodies' vertices out
         self._batch = None  # the PbdBatch that steps this body with others (``wsim.pbd.batch``), if any
 
     def attach_colliders(self, surfaces: Surfaces) -> None:
@@ -944,9 +945,11 @@ class PbdBody(Body):
         World before each ``advance``; an empty list ends the coupling."""
         self._require_bound()
         d = self._device
-        masses = [rest[0] if rest else None for *_, rest in ((s[:5], s[5:]) for s in surfaces)]
-        closed = len(self.model.faces) > 0 and not wmesh.has_boundary(self.model.faces)
-        layout = [(k, len(p0), len(f), closed and m is not None) for (k, p0, _, f, *_), m in zip(surfaces, masses)]
+        masses = [s[5] if len(s) > 5 else None for s in surfaces]
+        if self._surface_closed is None:  # the model's surface is fixed: asked once
+            self._surface_closed = len(self.model.faces) > 0 and not wmesh.has_boundary(self.model.faces)
+        layout = [(k, len(p0), len(f), self._surface_closed and m is not None)
+                  for (k, p0, _, f, *_), m in zip(surfaces, masses)]
         if layout != [(ms.key, ms.p0.shape[0], ms.indices.shape[0] // 3, ms.keep_out) for ms in self._moving]:
             self._graph = None  # the frame's launches change
             self._moving = []
@@ -972,19 +975,26 @@ class PbdBody(Body):
             ms.p1.assign(np.asarray(p1, dtype=np.float32))
             ms.impulse.zero_()
 
+    def _surface_buffers(self) -> tuple[wp.array, wp.array, int]:
+        """The surface's point buffer (refit from the particles before each use), its triangles and
+        its inside test (ray parity for one watertight piece: a third of the winding number's
+        cost), made once: the meshes of contact with other PBD bodies (``wsim.pbd.contact``) and
+        of other bodies' vertices (``_build_own_surface``) are built on them."""
+        if getattr(self, "_surface_arrays", None) is None:
+            faces = np.ascontiguousarray(self.model.faces, dtype=np.int32)
+            self._surface_arrays = (wp.zeros(self.model.n_surface, dtype=wp.vec3, device=self._device),
+                                    wp.array(faces.ravel(), dtype=wp.int32, device=self._device),
+                                    wmesh.inside_test(faces))
+        return self._surface_arrays
+
     def _build_own_surface(self) -> _OwnSurface:
         """This body's surface as a Warp mesh (refit to the particles' current positions before
         each use), which the moving surfaces' vertices are kept out of (``moving_points_contact``)."""
-        d, n = self._device, self.model.n_surface
-        faces = np.ascontiguousarray(self.model.faces, dtype=np.int32)
-        test = wmesh.inside_test(faces)
-        points = wp.zeros(n, dtype=wp.vec3, device=d)
-        wp.copy(points, self.state.x, count=n)
-        x = points.numpy()
+        points, indices, test = self._surface_buffers()
+        wp.copy(points, self.state.x, count=self.model.n_surface)
         # a vertex inside is at most the body's smallest width from its surface: a query looks that
         # far (1.5x for the body's deformation), and a vertex farther out costs no inside test
-        reach = 1.5 * float(np.ptp(x, axis=0).min()) + self.contact_margin
-        indices = wp.array(faces.ravel(), dtype=wp.int32, device=d)
+        reach = 1.5 * float(np.ptp(points.numpy(), axis=0).min()) + self.contact_margin
         mesh = wp.Mesh(points=points, indices=indices, support_winding_number=test == 1)
         return _OwnSurface(points=points, indices=indices, mesh=mesh, reach=reach, closed=test)
 

@@ -22,7 +22,6 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 import warp as wp
 
-from wsim import mesh as wmesh
 from wsim.contact import pair_friction
 from wsim.kernels import pbd_contact as kc
 
@@ -70,12 +69,7 @@ def candidate_pairs(bodies: Sequence[PbdBody], frame_dt: float) -> list[tuple[Pb
 def _build_mesh(body: PbdBody) -> None:
     """The body's surface as a Warp mesh on its current positions (BVH built now, refit later)."""
     n = body.model.n_surface
-    if getattr(body, "_contact_points", None) is None:
-        body._contact_points = wp.zeros(n, dtype=wp.vec3, device=body._device)
-        faces = np.ascontiguousarray(body.model.faces, dtype=np.int32)
-        body._contact_indices = wp.array(faces.ravel(), dtype=wp.int32, device=body._device)
-    if getattr(body, "_contact_test", None) is None:  # ray parity for one watertight piece (a third of the cost)
-        body._contact_test = wmesh.inside_test(body.model.faces)
+    body._contact_points, body._contact_indices, body._contact_test = body._surface_buffers()
     wp.copy(body._contact_points, body.x, count=n)
     body._contact_mesh = wp.Mesh(points=body._contact_points, indices=body._contact_indices,
                                  support_winding_number=body._contact_test == 1)
