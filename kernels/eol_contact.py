@@ -628,6 +628,81 @@ def node_friction(
 
 
 @wp.kernel
+def partner_wrenches(
+    surf: ContactSurface,
+    mesh: wp.uint64,
+    hit_row: wp.array(dtype=wp.int32),
+    hit_face: wp.array(dtype=wp.int32),
+    hit_bary: wp.array(dtype=wp.vec3d),
+    row_of_slot: wp.array(dtype=wp.int32),
+    com: wp.vec3d,
+    wrench: wp.array2d(dtype=wp.vec3d),
+):
+    """What a unit multiplier of each packed row r does to a moving partner taken as a rigid body:
+    wrench[r, 0] = sum_s c_s (the force), wrench[r, 1] = sum_s (p_s - com) x c_s (the moment about
+    its centre of mass), over the samples s of row r inside it, c_s = -|n_A . n_B| n_B dGamma
+    (``pushed_area``, world) applied at the sample's nearest point p_s, where the row's right side
+    takes the partner's velocity (``surface_rows``). ``wrench`` is zeroed on its first m rows
+    beforehand."""
+    i = wp.tid()
+    r = hit_packed_row(hit_row, row_of_slot, i)
+    if r < 0:
+        return
+    yp, x, an = sample_world(surf, i)
+    f = hit_face[i]
+    n = wp.mesh_eval_face_normal(mesh, f)
+    c = pushed_area(an, wp.vec3d(wp.float64(n[0]), wp.float64(n[1]), wp.float64(n[2])))
+    b = hit_bary[i]
+    p = vec3d_of(wp.mesh_eval_position(mesh, f, float(b[0]), float(b[1])))
+    wp.atomic_add(wrench, r, 0, c)
+    wp.atomic_add(wrench, r, 1, wp.cross(p - com, c))
+
+
+@wp.kernel
+def partner_compliance(wrench: wp.array2d(dtype=wp.vec3d), inv_mass: wp.float64, inv_inertia: wp.mat33d, m: int,
+                       system: wp.array(dtype=wp.float64)):
+    """S_ij += f_i . f_j / M + t_i . I^-1 t_j (``partner_wrenches``' force f and moment t per row):
+    the give of a moving partner of mass M and inertia I (world, about its centre of mass) to the
+    rows' impulses. A partner that yields moves away as it takes lambda, so the rows' right side
+    (its flux) grows by S_B lambda and the dual matrix of Eq. (29) becomes S + S_B: the QP shares
+    each correction between this body's nodes and the partner by their masses. Without it the
+    partner is kinematic, and a heavy EoL body matched a light partner's velocity with all its own
+    mass: a 48 kg EoL slab flung the 0.8 kg BEM box sliding on it (+5.4 J). The partner is taken
+    as rigid (its response over a coupling interval to a push spread over its face; lumping it
+    on the touched vertices let it sink 10 mm into the slab). Each (i, j) is one thread, after
+    ``schur_complement`` (a later launch): no atomics."""
+    i, j = wp.tid()
+    fi = wrench[i, 0]
+    ti = wrench[i, 1]
+    fj = wrench[j, 0]
+    tj = wrench[j, 1]
+    system[i * m + j] = system[i * m + j] + wp.dot(fi, fj) * inv_mass + wp.dot(ti, inv_inertia * tj)
+
+
+@wp.kernel
+def partner_push(surface: wp.array(dtype=wp.vec3), step_impulse: wp.array(dtype=wp.vec3d), com: wp.vec3d,
+                 total: wp.array(dtype=wp.vec3d)):
+    """total[0] += J_v, total[1] += (x_v - com) x J_v: the momentum and angular momentum (about the
+    partner's centre of mass) of this step's reaction (``surface_reaction``) at vertices x_v."""
+    v = wp.tid()
+    J = step_impulse[v]
+    wp.atomic_add(total, 0, J)
+    wp.atomic_add(total, 1, wp.cross(vec3d_of(surface[v]) - com, J))
+
+
+@wp.kernel
+def partner_yield(velocity: wp.array(dtype=wp.vec3d), surface: wp.array(dtype=wp.vec3), total: wp.array(dtype=wp.vec3d),
+                  com: wp.vec3d, inv_mass: wp.float64, inv_inertia: wp.mat33d):
+    """v_v += P / M + (I^-1 L) x (x_v - com): the partner's vertices take this step's reaction
+    (``partner_push``: P, L) as a rigid body in the velocity the next step's rows see (their right
+    side), as ``partner_compliance`` assumed they would; the partner's own stepping receives it
+    after the coupling interval. Without it each step of the interval saw the partner closing in
+    at its old speed and pushed it again."""
+    v = wp.tid()
+    velocity[v] = velocity[v] + inv_mass * total[0] + wp.cross(inv_inertia * total[1], vec3d_of(surface[v]) - com)
+
+
+@wp.kernel
 def accumulate(total: wp.array(dtype=wp.vec3d), part: wp.array(dtype=wp.vec3d)):
     """total += part: a step's reaction impulses (``surface_reaction``) summed over an ``advance``
     on the device."""

@@ -30,13 +30,24 @@ from wsim.kernels.eol_grid import (
     node_position,
 )
 
-# threads of the chunked reductions: each sums every chunks-th node (a grid-stride loop, so a warp
-# reads consecutive nodes), then adds its partial result with one atomic per entry. On an H100 at
-# 32^3 (50k nodes) the 40-entry moments took 0.12 ms with 256 threads, 0.06 with 1024 and 0.26
-# with 8192 (atomics on the same 40 addresses queue up); on the CPU, where Warp runs threads one
-# after another, the count barely matters.
-CHUNKS_CPU = 256
-CHUNKS_CUDA = 1024
+# The reductions over the grid's nodes (the split's moments, the residual's maxima) run in blocks of
+# REDUCE_BLOCK threads, each summing every (blocks x REDUCE_BLOCK)-th node (a grid-stride loop: a
+# warp reads consecutive nodes), then the block's sum (``wp.tile_sum``) is added with one atomic
+# per entry. One atomic per thread, as before, made the 40-entry moments cost 0.06 ms a launch on
+# an H100 at 32^3 (50k nodes) with 1024 threads (too few to hide the loads' latency) and 0.26 ms
+# with 8192 (the atomics on 40 addresses queue up). ``reduce_blocks`` gives each thread about
+# REDUCE_NODES nodes on a GPU; a CPU block is one thread, which runs after the others, so the
+# count barely matters there.
+REDUCE_BLOCK = 64
+REDUCE_NODES = 4
+BLOCKS_CPU = 256
+
+
+def reduce_blocks(n: int, device) -> int:
+    """Blocks of a node reduction over n nodes on ``device`` (see ``REDUCE_BLOCK``)."""
+    if not device.is_cuda:
+        return BLOCKS_CPU
+    return max(1, -(-n // (REDUCE_BLOCK * REDUCE_NODES)))
 
 
 @wp.kernel
@@ -104,20 +115,21 @@ def velocity_moments(
     mass: wp.array(dtype=wp.float64),
     grid: Grid,
     weighted: int,
-    chunks: int,
+    blocks: int,
     out: wp.array(dtype=wp.float64),
 ):
     """Moments over nodes with mass (y about the centre of mass, the intermediate origin): out[0:16] =
     sum k yb yb^T, out[16:28] = sum k w0 yb^T, out[28:40] = sum k w1 yb^T with yb = (y, 1) and k = 1
     (the paper's 2-norm, Eq. 23) or k = m_s (``weighted``: the mass norm): everything the
-    least-squares split needs, for rigid and affine coordinates alike."""
-    chunk = wp.tid()
+    least-squares split needs, for rigid and affine coordinates alike. Launched tiled, ``blocks``
+    blocks (``reduce_blocks``); ``out`` zeroed beforehand."""
+    block, lane = wp.tid()
     n = mass.shape[0]
     C = wp.mat44d()
     B0 = wp.mat44d()
     B1 = wp.mat44d()
     one = wp.float64(1.0)
-    for s in range(chunk, n, chunks):
+    for s in range(block * wp.block_dim() + lane, n, blocks * wp.block_dim()):
         if mass[s] > wp.float64(0.0):
             y = node_position(s, grid)
             yb = wp.vec4d(y[0], y[1], y[2], one)
@@ -127,13 +139,20 @@ def velocity_moments(
             C += m * wp.outer(yb, yb)
             B0 += m * wp.outer(wp.vec4d(w0[s][0], w0[s][1], w0[s][2], wp.float64(0.0)), yb)
             B1 += m * wp.outer(wp.vec4d(w1[s][0], w1[s][1], w1[s][2], wp.float64(0.0)), yb)
-    for r in range(4):
-        for q in range(4):
-            wp.atomic_add(out, 4 * r + q, C[r, q])
-    for r in range(3):
-        for q in range(4):
-            wp.atomic_add(out, 16 + 4 * r + q, B0[r, q])
-            wp.atomic_add(out, 28 + 4 * r + q, B1[r, q])
+    tC = wp.tile_sum(wp.tile(C, preserve_type=True))
+    tB0 = wp.tile_sum(wp.tile(B0, preserve_type=True))
+    tB1 = wp.tile_sum(wp.tile(B1, preserve_type=True))
+    if lane == 0:
+        sC = tC[0]
+        sB0 = tB0[0]
+        sB1 = tB1[0]
+        for r in range(4):
+            for q in range(4):
+                wp.atomic_add(out, 4 * r + q, sC[r, q])
+        for r in range(3):
+            for q in range(4):
+                wp.atomic_add(out, 16 + 4 * r + q, sB0[r, q])
+                wp.atomic_add(out, 28 + 4 * r + q, sB1[r, q])
 
 
 # layout of the split's fields on the device (``split_fields``): L_0 (9, row-major), c_0 (3),
@@ -180,7 +199,8 @@ def fields_of_moments(kind: int, C: wp.mat44d, B: wp.mat44d) -> wp.mat44d:
 @wp.kernel
 def split_fields(moments: wp.array(dtype=wp.float64), kind: int, fields: wp.array(dtype=wp.float64)):
     """One thread: the split's (L_0, c_0), (L_1, c_1) from ``velocity_moments`` into ``fields``
-    (layout ``FIELDS``), so the step's kernels read them without a round trip to the host."""
+    (layout ``FIELDS``), so the step's kernels read them without a round trip to the host; then
+    zeroes ``moments`` (allocated zero) for the next split, which saves each split a memset."""
     C = wp.mat44d()
     B0 = wp.mat44d()
     B1 = wp.mat44d()
@@ -200,6 +220,8 @@ def split_fields(moments: wp.array(dtype=wp.float64), kind: int, fields: wp.arra
         fields[9 + r] = F0[r, 3]
         fields[21 + r] = F1[r, 3]
     fields[24] = C[3, 3]
+    for e in range(40):  # ready for the next split's sums (``split_on_device`` zeroes it no more)
+        moments[e] = wp.float64(0.0)
 
 
 @wp.func
@@ -221,14 +243,15 @@ def eulerian_residual(
     grid: Grid,
     fields: wp.array(dtype=wp.float64),
     F_L_inv: wp.mat33d,
-    chunks: int,
+    blocks: int,
     v0: wp.array(dtype=wp.vec3d),
     v1: wp.array(dtype=wp.vec3d),
     vmax: wp.array(dtype=wp.float64),
 ):
     """v*_i = F_L^-1 (w_i - L_i y - c_i) (Eq. 24 for both parts of Eq. 32), and per axis max |v*_i|
-    (Eq. 33); (L_i, c_i) from ``fields`` (``split_fields``)."""
-    chunk = wp.tid()
+    (Eq. 33); (L_i, c_i) from ``fields`` (``split_fields``). Launched tiled like
+    ``velocity_moments``."""
+    block, lane = wp.tid()
     n = mass.shape[0]
     L0 = field_L(fields, 0)
     c0 = field_c(fields, 9)
@@ -236,7 +259,7 @@ def eulerian_residual(
     c1 = field_c(fields, 21)
     m0 = wp.vec3d()
     m1 = wp.vec3d()
-    for s in range(chunk, n, chunks):
+    for s in range(block * wp.block_dim() + lane, n, blocks * wp.block_dim()):
         if mass[s] > wp.float64(0.0):
             y = node_position(s, grid)
             a = F_L_inv * (w0[s] - L0 * y - c0)
@@ -250,8 +273,11 @@ def eulerian_residual(
             v0[s] = wp.vec3d()
             v1[s] = wp.vec3d()
     for d in range(3):
-        wp.atomic_max(vmax, d, m0[d])
-        wp.atomic_max(vmax, 3 + d, m1[d])
+        t0 = wp.tile_max(wp.tile(m0[d]))
+        t1 = wp.tile_max(wp.tile(m1[d]))
+        if lane == 0:
+            wp.atomic_max(vmax, d, t0[0])
+            wp.atomic_max(vmax, 3 + d, t1[0])
 
 
 @wp.kernel

@@ -52,30 +52,47 @@ def _same(new: Any, old: Any) -> bool:
     return False
 
 
+#: recorded commands kept per call site (one per distinct set of arrays and sizes it launches with)
+VARIANTS = 8
+
+
 class Launcher:
     """``launch(kernel, dim, inputs)`` on one device, replaying a recorded command per call site.
 
-    A call site is the calling function's code and line. One Launcher per object that owns the arrays (a
-    body): the recorded commands keep references to the last arguments."""
+    A call site is the calling function's code and line. A site that launches with several sets of
+    arrays (a helper called for two fields, a loop over layers) keeps one command per set: its
+    arrays' addresses, its Python ints and its size pick the command, so a step's replays re-pack
+    only the values that change from step to step (an EoL step re-packed 28 arguments and set 4
+    sizes while one command per site alternated between its uses). One Launcher per object that
+    owns the arrays (a body): the recorded commands keep references to the last arguments."""
 
     def __init__(self, device: wp.Device) -> None:
         self.device = device
-        self._cmds: dict[tuple, tuple[Any, list[Any], Any]] = {}
+        self._cmds: dict[tuple, dict[tuple, tuple[Any, list[Any], Any]]] = {}
 
-    def __call__(self, kernel: Any, dim: Any, inputs: list[Any], depth: int = 1) -> None:
-        """``depth``: which caller's line is the call site (1: the caller; 2: its caller)."""
+    def __call__(self, kernel: Any, dim: Any, inputs: list[Any], depth: int = 1, block_dim: int = 0) -> None:
+        """``depth``: which caller's line is the call site (1: the caller; 2: its caller).
+        ``block_dim``: a tiled launch (``wp.launch_tiled``) of ``dim`` blocks of that many threads."""
         frame = sys._getframe(depth)
         site = (kernel, frame.f_code, frame.f_lineno)
-        entry = self._cmds.get(site)
+        variants = self._cmds.get(site)
+        if variants is None:
+            variants = self._cmds[site] = {}
+        sig = (dim if isinstance(dim, int) else tuple(dim),
+               *[a.ptr if isinstance(a, _ARRAY) else (a if type(a) is int else None) for a in inputs])
+        entry = variants.get(sig)
         if entry is None:
-            cmd = wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, record_cmd=True)
-            self._cmds[site] = (cmd, list(inputs), [dim])
+            if block_dim:
+                cmd = wp.launch_tiled(kernel, dim=dim, block_dim=block_dim, inputs=inputs, device=self.device,
+                                      record_cmd=True)
+            else:
+                cmd = wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, record_cmd=True)
+            if len(variants) >= VARIANTS:
+                del variants[next(iter(variants))]
+            variants[sig] = (cmd, list(inputs), [dim])
             cmd.launch()
             return
         cmd, last, last_dim = entry
-        if dim != last_dim[0]:
-            cmd.set_dim(dim)
-            last_dim[0] = dim
         for i, value in enumerate(inputs):
             if not _same(value, last[i]):
                 cmd.set_param_at_index(i, value)
@@ -97,13 +114,16 @@ class Launcher:
         self._cmds.clear()
 
 
-def launch_on(device: wp.Device, launcher: Launcher | None, kernel: Any, dim: Any, inputs: list[Any]) -> None:
+def launch_on(device: wp.Device, launcher: Launcher | None, kernel: Any, dim: Any, inputs: list[Any],
+              block_dim: int = 0) -> None:
     """``launcher(kernel, dim, inputs)`` when one is given, else a plain ``wp.launch`` on ``device``
-    (helpers that bodies call every step and tests call once)."""
-    if launcher is None:
-        wp.launch(kernel, dim=dim, inputs=inputs, device=device)
+    (helpers that bodies call every step and tests call once); ``block_dim``: tiled (``Launcher``)."""
+    if launcher is not None:
+        launcher(kernel, dim, inputs, depth=2, block_dim=block_dim)
+    elif block_dim:
+        wp.launch_tiled(kernel, dim=dim, block_dim=block_dim, inputs=inputs, device=device)
     else:
-        launcher(kernel, dim, inputs, depth=2)
+        wp.launch(kernel, dim=dim, inputs=inputs, device=device)
 
 
 _CONCRETE: dict[tuple, Any] = {}

@@ -487,7 +487,11 @@ def _couple_surfaces(pusher: Body, targets: Sequence[Body], index: dict[int, int
             mu = pair_friction(getattr(pusher, "friction", None), getattr(b, "friction", None))
             # a pushed body's vertices are also kept out of a PBD pusher's surface (``VertexImpulses``)
             kept = getattr(b, "vertices_kept_out", False)
-            surfaces.append((index[id(b)], p0, p1, b.faces, mu, b.vertex_masses() if kept else None))
+            # an EoL pusher's rows share each correction with the pushed body's rigid give
+            # (``EolBody.set_moving_surfaces``)
+            rigid = ((b.mass, b.center_of_mass(), b.world_inertia())
+                     if getattr(pusher, "yielding_partners", False) and hasattr(b, "world_inertia") else None)
+            surfaces.append((index[id(b)], p0, p1, b.faces, mu, b.vertex_masses() if kept else None, rigid))
     pusher.set_moving_surfaces(surfaces)
 
 

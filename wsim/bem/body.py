@@ -386,6 +386,14 @@ class BemBody(VertexImpulses, Body):
         self._sync()
         return self.state.frame.T.copy()
 
+    def world_inertia(self) -> np.ndarray:
+        """(3, 3) the inertia tensor about the centre of mass [kg m^2], world axes: the rest
+        inertia turned by the frame, R I R^T."""
+        self._require_bound()
+        self._sync()
+        R = self.state.frame.R
+        return R @ self._inertia @ R.T
+
     def angular_momentum(self, about: Sequence[float] | None = None) -> np.ndarray:
         """L = I_world omega [kg m^2/s] (world) about the centre of mass, or about the world point
         ``about`` (L + (T - p) x m v), from the material's motion like ``linear_momentum``. On a

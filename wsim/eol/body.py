@@ -48,7 +48,7 @@ from wsim.eol import pairs
 from wsim.eol.advection import advect_arrays, check_scheme, extend_reference_map
 from wsim.eol.contact import (ContactRows, ContactSolution, ContactSystem, block_nodes, rows_from_blocks, solve_contact,
                               surface_samples)
-from wsim.eol.elastic import hourglass_forces, sample_forces, viscous_forces
+from wsim.eol.elastic import I3, hourglass_forces, inverse_mat33, mat33, sample_forces, viscous_forces
 from wsim.eol.grid import EolGrid, make_grid, material_samples
 from wsim.eol.split import split_on_device, unpack_fields
 from wsim.eol.state import EolState
@@ -100,6 +100,9 @@ class _MovingSurface:
     reach: float = 0.0
     closed: int = 1  # the inside test of ``kernels.mesh.query_inside`` (``wsim.mesh.inside_test``)
     hits: tuple | None = None
+    rigid: tuple | None = None  # (1 / M, I^-1 (world), com at the end, mean shift over the advance): it yields
+    wrench: wp.array | None = None  # per row, what a unit multiplier does to it (``partner_wrenches``)
+    push: wp.array | None = None  # a step's reaction as momentum and angular momentum (``partner_push``)
     p0_host: np.ndarray | None = None
     p1_host: np.ndarray | None = None
     G: np.ndarray | None = None  # the rigid fit of its motion, v = G x + g (world), for friction
@@ -236,6 +239,10 @@ class EolBody(VertexImpulses, Body):
     needs a grid larger than 3x its first size on an axis (it flies apart) stops the run
     (``SimulationDiverged``, "material left the grid").
     """
+
+    #: its rows against another method's body share each correction with that body's rigid give
+    #: (the World hands ``set_moving_surfaces`` its mass, centre of mass and inertia)
+    yielding_partners = True
 
     def __init__(
         self,
@@ -529,6 +536,15 @@ class EolBody(VertexImpulses, Body):
         self._require_bound()
         return self.grid.node_positions() @ self.state.F.T + self.state.T
 
+    def world_inertia(self) -> np.ndarray:
+        """(3, 3) the inertia tensor about the centre of mass [kg m^2], world axes, of the lumped
+        node masses that ``angular_momentum`` sums: sum_s m_s (|r_s|^2 I - r_s r_s^T), r_s from
+        the centre of mass."""
+        m = self.node_masses()
+        x = self.node_world_positions()
+        r = x - (m @ x) / m.sum()
+        return np.sum(m * np.einsum("sd,sd->s", r, r)) * np.eye(3) - np.einsum("s,sd,se->de", m, r, r)
+
     def angular_momentum(self, about: Sequence[float] | None = None) -> np.ndarray:
         """sum_s m_s (x_s - p) x x_dot_s over the nodes [kg m^2/s] (world), about p = ``about``
         (world) or, by default, the nodes' current centre of mass. The lumped node masses are the
@@ -740,7 +756,6 @@ class EolBody(VertexImpulses, Body):
         self._views: dict[tuple, wp.array] = {}  # ``_g3``
         self._allocate_grid_arrays()
         self._energy = wp.zeros(1, dtype=wp.float64, device=d)
-        self._chunks = ks.CHUNKS_CUDA if d.is_cuda else ks.CHUNKS_CPU
         self._moments = wp.zeros(40, dtype=wp.float64, device=d)
         # what a step reads back, in one copy: max |v*_0|, |v*_1| per axis and the material outside
         # the grid's margin (8), the split's fields (``kernels.eol_step.FIELDS``), the loads' force
@@ -870,9 +885,7 @@ class EolBody(VertexImpulses, Body):
             return
         self._split(self._w, self._a)
         self._vmax.zero_()
-        self._launch(ks.eulerian_residual, self._chunks,
-                     [self._w, self._a, self._mass, self._grid, self._fields, _mat(np.linalg.inv(self._F_L())),
-                      self._chunks, self._v0, self._v1, self._vmax])
+        self._residual(self._w, self._a)
         wp.copy(st.v, self._v0)
         (L0, c0), _, _ = unpack_fields(self._fields.numpy())
         if self.lagrangian == "rigid":
@@ -927,8 +940,9 @@ class EolBody(VertexImpulses, Body):
         d = self._device
         keep = {ms.key: ms for ms in self._moving}
         moving = []
-        for key, p0, p1, faces, mu, *_ in surfaces:  # (a PBD pusher's keep_out: not used here)
+        for key, p0, p1, faces, mu, *rest in surfaces:
             p0 = np.asarray(p0, dtype=np.float64)
+            rigid = rest[1] if len(rest) > 1 else None
             ms = keep.get(key)
             if ms is None or ms.p0.shape[0] != len(p0) or ms.n_faces != len(faces):
                 cur = wp.array(p0.astype(np.float32), dtype=wp.vec3, device=d)
@@ -948,6 +962,11 @@ class EolBody(VertexImpulses, Body):
             ms.impulse.zero_()
             ms.friction_impulse = np.zeros((len(p0), 3))
             ms.mu = float(mu)
+            ms.rigid = None  # a kinematic surface, unless it says how it yields (``partner_compliance``)
+            if rigid is not None:
+                M, com, inertia = rigid
+                ms.rigid = (1.0 / float(M), np.linalg.inv(np.asarray(inertia, dtype=np.float64)),
+                            np.asarray(com, dtype=np.float64), (ms.p1_host - ms.p0_host).mean(axis=0))
             both = np.concatenate([p0, np.asarray(p1)])
             ms.reach = 2.0 * float(np.linalg.norm(np.ptp(both, axis=0))) + self.grid.h
             moving.append(ms)
@@ -997,7 +1016,7 @@ class EolBody(VertexImpulses, Body):
             if ms.mu > 0.0:  # friction's reference motion
                 ms.G, ms.g = rigid_fit(ms.p0_host, ms.p1_host, t1 - self.time)
             self._launch(kc.surface_velocity, ms.p0.shape[0],
-                      [ms.p0, ms.p1, wp.float64(1.0 / max(t1 - self.time, 1e-300)), ms.velocity])
+                         [ms.p0, ms.p1, wp.float64(1.0 / max(t1 - self.time, 1e-300)), ms.velocity])
 
     def check_finite(self, frame: int, time_: float) -> None:
         if self._failure is None:
@@ -1012,11 +1031,11 @@ class EolBody(VertexImpulses, Body):
     # -- the step ------------------------------------------------------------------------------
     def _F_L(self) -> np.ndarray:
         """The Lagrangian deformation gradient in the velocity axes: A (affine), I (rigid, Eulerian)."""
-        return self.state.F if self.lagrangian == "affine" else np.eye(3)
+        return self.state.F if self.lagrangian == "affine" else I3
 
     def _axes(self) -> np.ndarray:
         """Velocity axes -> world: R for rigid (body axes), I otherwise."""
-        return self.state.F if self.lagrangian == "rigid" else np.eye(3)
+        return self.state.F if self.lagrangian == "rigid" else I3
 
     def _lagrangian_field(self) -> tuple[np.ndarray, np.ndarray]:
         """(L, c) with J_L(y) q1_dot = L y + c in the velocity axes."""
@@ -1136,9 +1155,7 @@ class EolBody(VertexImpulses, Body):
                           [y, self._grid, wp.float64(1.0), self._vmax, slot])
         else:
             self._vmax[:6].zero_()
-        self._launch(ks.eulerian_residual, self._chunks,
-                     [w0, w1, self._mass, self._grid, self._fields, _mat(np.linalg.inv(self._F_L())), self._chunks,
-                      self._v0, self._v1, self._vmax])
+        self._residual(w0, w1)
         readout = self._readout.numpy()  # the step's one synchronization without contact
         vmax = readout[:8]
         work.fields = unpack_fields(readout[8:READ_LOAD])
@@ -1223,10 +1240,18 @@ class EolBody(VertexImpulses, Body):
             self._m_total = float(np.sum(self._mass.numpy()))
             return
         mass_norm = self.split == "mass"
-        split_on_device(self._grid, w0, w1, self._mass, mass_norm, self._chunks, self._moments, self.lagrangian,
+        split_on_device(self._grid, w0, w1, self._mass, mass_norm, self._moments, self.lagrangian,
                         self._fields, self._device, self._launch)
         if not mass_norm:  # the uniform split's weights are 1: the mass needs its own sum
             self._m_total = float(np.sum(self._mass.numpy()))
+
+    def _residual(self, w0: wp.array, w1: wp.array) -> None:
+        """v*_0, v*_1 (Eqs. 24, 32) of w0 and w1 without the split's fields, and their maxima per
+        axis into ``_vmax`` (``kernels.eol_step.eulerian_residual``)."""
+        blocks = ks.reduce_blocks(self.grid.n_nodes, self._device)
+        self._launch(ks.eulerian_residual, blocks,
+                     [w0, w1, self._mass, self._grid, self._fields, inverse_mat33(self._F_L()), blocks,
+                      self._v0, self._v1, self._vmax], block_dim=ks.REDUCE_BLOCK)
 
     def _restore_momentum(self) -> None:
         """Keep the Eulerian velocity free of momentum after advection (Lagrangian frames, the
@@ -1244,7 +1269,7 @@ class EolBody(VertexImpulses, Body):
         device, no read-back; a body without mass gets a zero field)."""
         if self.lagrangian == "eulerian" or self.split != "mass":
             return
-        split_on_device(self._grid, self.state.v, self.state.v, self._mass, True, self._chunks, self._moments,
+        split_on_device(self._grid, self.state.v, self.state.v, self._mass, True, self._moments,
                         self.lagrangian, self._restore_fields, self._device, self._launch)
         self._launch(ks.remove_lagrangian_part, self.grid.n_nodes,
                      [self.state.v, self._mass, self._grid, self._restore_fields])
@@ -1435,6 +1460,15 @@ class EolBody(VertexImpulses, Body):
                          [self._surface, ms.mesh.id, *ms.hits, self._row_of_slot, self._lam, wp.float64(dt),
                           ms.step_impulse, ms.step_weight])
             self._launch(kc.accumulate, ms.p0.shape[0], [ms.impulse, ms.step_impulse])
+            if ms.rigid is not None:  # the next step's rows see it yield
+                if ms.push is None:
+                    ms.push = wp.zeros(2, dtype=wp.vec3d, device=self._device)
+                ms.push.zero_()
+                com = self._partner_com(ms)
+                inv_M, inv_I, _, _ = ms.rigid
+                self._launch(kc.partner_push, ms.p0.shape[0], [ms.cur, ms.step_impulse, com, ms.push])
+                self._launch(kc.partner_yield, ms.p0.shape[0],
+                             [ms.velocity, ms.cur, ms.push, com, wp.float64(inv_M), _mat(inv_I)])
             if ms.friction is not None and np.any(ms.friction):  # friction is spread on the host
                 weight = ms.step_weight.numpy()
                 if weight.sum() > 0.0:
@@ -1464,6 +1498,7 @@ class EolBody(VertexImpulses, Body):
         self._launch(kc.schur_complement, (m, 27 * self._row_groups),
                   [self._surface, self._row_packed, self._row_ids, self._row_of_slot, self._mass, m,
                           self._system])
+        self._partner_compliance(m)
         host = self._system[:size].numpy()
         ids = host[m * m + 7 * m:m * m + 8 * m].astype(np.int64)
         order = np.argsort(ids, kind="stable")
@@ -1472,6 +1507,31 @@ class EolBody(VertexImpulses, Body):
                                ids=ids[order], overlap=vec[3],
                                jsum=vec[4:].T.copy())
         return system, order
+
+    def _partner_com(self, ms: _MovingSurface) -> wp.vec3d:
+        """A yielding moving surface's centre of mass where it is at this step (its end point moved
+        back with the surface's mean motion)."""
+        return wp.vec3d(*(ms.rigid[2] + (self._fraction - 1.0) * ms.rigid[3]))
+
+    def _partner_compliance(self, m: int) -> None:
+        """Add each yielding moving surface's give to the m rows' dual matrix on the device, S +=
+        S_B (``kernels.eol_contact.partner_compliance``): the QP then shares each correction
+        between this body's nodes and the partner by their masses instead of moving this body
+        alone."""
+        d = self._device
+        P = self._surface.sample_face.shape[0]
+        for ms in self._moving:
+            if ms.rigid is None:
+                continue
+            if ms.wrench is None or ms.wrench.shape[0] < m:
+                ms.wrench = wp.zeros((max(m, 2 * (0 if ms.wrench is None else ms.wrench.shape[0]), 16), 2),
+                                     dtype=wp.vec3d, device=d)
+            else:
+                ms.wrench[:m].zero_()
+            inv_M, inv_I, _, _ = ms.rigid
+            self._launch(kc.partner_wrenches, P, [self._surface, ms.mesh.id, ms.hits[0], ms.hits[2], ms.hits[1],
+                                                  self._row_of_slot, self._partner_com(ms), ms.wrench])
+            self._launch(kc.partner_compliance, (m, m), [ms.wrench, wp.float64(inv_M), _mat(inv_I), m, self._system])
 
     def contact_rows(self) -> ContactRows | None:
         """The contact constraints of Eq. (28) at the current state, read back with J (None: no
@@ -1634,11 +1694,13 @@ def _rows_between(bodies: Sequence[EolBody], keys: Sequence[int], works: list[_S
 def _problems(works: list[_StepWork], rows: pairs.PairRows | None) -> list[tuple[list[int], np.ndarray]]:
     """The QPs of a step: bodies joined by rows between them (with those rows' indices) solve one
     together; a body with only its own rows solves its own; a body without rows none."""
+    if rows is None:  # no rows between bodies (one body, or none touching): each its own, if any
+        return [([k], np.zeros(0, dtype=np.int64)) for k, w in enumerate(works) if w.m]
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
     n = len(works)
-    links = rows.bodies if rows is not None else np.zeros((0, 2), dtype=np.int64)
+    links = rows.bodies
     _, label = connected_components(coo_matrix((np.ones(len(links)), (links[:, 0], links[:, 1])), shape=(n, n)),
                                     directed=False)
     groups: dict[int, list[int]] = {}
@@ -1748,5 +1810,4 @@ def _opposite_push(force: np.ndarray, moment: np.ndarray, weight: np.ndarray, x:
     return J
 
 
-def _mat(M: np.ndarray) -> wp.mat33d:
-    return wp.mat33d(*np.asarray(M, dtype=np.float64).ravel())
+_mat = mat33

@@ -16,6 +16,23 @@ from wsim.materials import ElasticMaterial
 from wsim.launch import Launcher, launch_on
 
 
+#: the identity F_L of rigid and Eulerian coordinates, one read-only object: ``mat33`` and
+#: ``inverse_mat33`` then hand the step's launches one Warp matrix, not a new one a launch
+I3 = np.eye(3)
+I3.setflags(write=False)
+_MAT_I3 = wp.mat33d(*I3.ravel())
+
+
+def mat33(M: np.ndarray) -> wp.mat33d:
+    """M as a Warp float64 matrix (the one shared identity for ``I3``)."""
+    return _MAT_I3 if M is I3 else wp.mat33d(*np.asarray(M, dtype=np.float64).ravel())
+
+
+def inverse_mat33(M: np.ndarray) -> wp.mat33d:
+    """M^-1 as a Warp float64 matrix (the one shared identity for ``I3``)."""
+    return _MAT_I3 if M is I3 else mat33(np.linalg.inv(np.asarray(M, dtype=np.float64)))
+
+
 def sample_forces(grid: Grid, z: wp.array, y: wp.array, volumes: wp.array, Fp_inv: wp.array, plastic: bool,
                   F_L: np.ndarray, material: ElasticMaterial, forces: wp.array, mass: wp.array, energy: wp.array,
                   device, launcher: Launcher | None = None) -> None:
@@ -23,13 +40,13 @@ def sample_forces(grid: Grid, z: wp.array, y: wp.array, volumes: wp.array, Fp_in
     the nodal forces in F_L's axes [N], the lumped masses [kg] and the elastic energy [J] of the
     material points at intermediate positions ``y`` with material volumes ``volumes``. ``Fp_inv``
     (P,) is read only when ``plastic`` (a 1-element placeholder otherwise)."""
-    forces.zero_()
-    mass.zero_()
-    energy.zero_()
-    launch_on(device, launcher, ke.sample_forces, volumes.shape[0],
+    launch_on(device, launcher, ke.zero_nodes, forces.shape, [forces, mass, energy])
+    block = ke.FORCES_BLOCK if wp.get_device(device).is_cuda else 1  # a CPU block is one thread
+    launch_on(device, launcher, ke.sample_forces, -(-volumes.shape[0] // block),
               [z, grid, y, volumes, Fp_inv, int(bool(plastic)),
-                      wp.mat33d(*np.asarray(F_L, dtype=np.float64).ravel()),
-                      wp.float64(material.mu), wp.float64(material.lam), wp.float64(material.rho), forces, mass, energy])
+                      mat33(F_L), wp.float64(material.mu), wp.float64(material.lam), wp.float64(material.rho), forces,
+                      mass, energy],
+              block_dim=ke.FORCES_BLOCK)
 
 
 def hourglass_forces(grid: Grid, z: wp.array, y: wp.array, volumes: wp.array, full: float, F_L: np.ndarray,
@@ -41,7 +58,7 @@ def hourglass_forces(grid: Grid, z: wp.array, y: wp.array, volumes: wp.array, fu
     filled.zero_()
     launch_on(device, launcher, ke.cell_fill, volumes.shape[0], [z, grid, y, volumes, filled])
     launch_on(device, launcher, ke.hourglass_forces, filled.shape,
-              [z, filled, grid.h, wp.float64(full), wp.mat33d(*np.asarray(F_L, dtype=np.float64).ravel()),
+              [z, filled, grid.h, wp.float64(full), mat33(F_L),
                       wp.float64(stiffness), forces, energy])
 
 
@@ -52,7 +69,7 @@ def viscous_forces(grid: Grid, w: wp.array, y: wp.array, volumes: wp.array, F_L:
     node velocities ``w`` (3-D, F_L's axes) with viscosity ``eta`` [Pa s], explicit at steps up to
     ``dt`` with node masses ``mass`` [kg] (kernels ``viscous_row_bound``, then ``viscous_forces``:
     points next to nodes too light for that step are damped less); ``bound`` is node-shaped scratch."""
-    F_L_inv = wp.mat33d(*np.linalg.inv(np.asarray(F_L, dtype=np.float64)).ravel())
+    F_L_inv = inverse_mat33(F_L)
     bound.zero_()
     launch_on(device, launcher, ke.viscous_row_bound, volumes.shape[0], [grid, w, y, volumes, F_L_inv, wp.float64(eta), bound])
     forces.zero_()

@@ -78,12 +78,14 @@ def moments(y: np.ndarray, w: np.ndarray, weights: np.ndarray) -> tuple[np.ndarr
     return (k[:, None] * yb).T @ yb, (k[:, None] * w).T @ yb
 
 
-def split_on_device(grid: Grid, w0: wp.array, w1: wp.array, mass: wp.array, weighted: bool, chunks: int,
+def split_on_device(grid: Grid, w0: wp.array, w1: wp.array, mass: wp.array, weighted: bool,
                     moments: wp.array, kind: str, fields: wp.array, device, launcher: Launcher | None = None) -> None:
     """The split of w0 and w1 (``lagrangian_fields`` of their moments) into ``fields`` (layout
-    ``kernels.eol_step.FIELDS``), on the device: no read-back. ``kind``: "rigid" or "affine"."""
-    moments.zero_()
-    launch_on(device, launcher, ks.velocity_moments, chunks, [w0, w1, mass, grid, int(bool(weighted)), chunks, moments])
+    ``kernels.eol_step.FIELDS``), on the device: no read-back. ``kind``: "rigid" or "affine".
+    ``moments`` (40,) must be zero (``split_fields`` leaves it so)."""
+    blocks = ks.reduce_blocks(mass.shape[0], device)
+    launch_on(device, launcher, ks.velocity_moments, blocks, [w0, w1, mass, grid, int(bool(weighted)), blocks, moments],
+              block_dim=ks.REDUCE_BLOCK)
     launch_on(device, launcher, ks.split_fields, 1, [moments, 1 if kind == "affine" else 0, fields])
 
 
