@@ -23,13 +23,15 @@ def semi_lagrangian(
     q: wp.array3d(dtype=wp.vec3d),
     v: wp.array3d(dtype=wp.vec3d),
     grid: Grid,
-    dt: wp.float64,
+    dt_at: wp.array(dtype=wp.float64),
+    sign: wp.float64,
     out: wp.array3d(dtype=wp.vec3d),
 ):
-    """out_s = q(y_s - dt v_s): one first-order step of dq/dt + v . grad q = 0 (Eq. 15)."""
+    """out_s = q(y_s - dt v_s): one first-order step of dq/dt + v . grad q = 0 (Eq. 15), dt =
+    sign dt_at[0] (on the device: a captured step reads each step's dt there)."""
     i, j, k = wp.tid()
     y = node_at(grid, i, j, k)
-    out[i, j, k] = sample_trilinear(q, y - dt * v[i, j, k], grid)
+    out[i, j, k] = sample_trilinear(q, y - sign * dt_at[0] * v[i, j, k], grid)
 
 
 @wp.kernel
@@ -45,14 +47,15 @@ def semi_lagrangian_limited(
     bound: wp.array3d(dtype=wp.vec3d),
     v: wp.array3d(dtype=wp.vec3d),
     grid: Grid,
-    dt: wp.float64,
+    dt_at: wp.array(dtype=wp.float64),
     out: wp.array3d(dtype=wp.vec3d),
 ):
     """BFECC's last pass with the limiter of Selle et al. (2008): q at the foot point, clamped per
     component to the range of ``bound`` (the field before advection) over the foot point's cell, so
-    the scheme adds no new extrema (unlimited BFECC overshoots where v* jumps, e.g. at a contact)."""
+    the scheme adds no new extrema (unlimited BFECC overshoots where v* jumps, e.g. at a contact).
+    dt = dt_at[0]."""
     i, j, k = wp.tid()
-    p = node_at(grid, i, j, k) - dt * v[i, j, k]
+    p = node_at(grid, i, j, k) - dt_at[0] * v[i, j, k]
     value = sample_trilinear(q, p, grid)
     g = grid_coordinates(bound, p, grid)
     cell = cell_of(bound, g)

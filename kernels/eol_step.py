@@ -292,10 +292,11 @@ def remove_lagrangian_part(v: wp.array(dtype=wp.vec3d), mass: wp.array(dtype=wp.
 
 
 @wp.kernel
-def combine(v0: wp.array(dtype=wp.vec3d), v1: wp.array(dtype=wp.vec3d), dt: wp.float64, out: wp.array(dtype=wp.vec3d)):
-    """v* = v*_0 + dt v*_1 (Eq. 32c)."""
+def combine(v0: wp.array(dtype=wp.vec3d), v1: wp.array(dtype=wp.vec3d), dt_at: wp.array(dtype=wp.float64),
+            out: wp.array(dtype=wp.vec3d)):
+    """v* = v*_0 + dt v*_1 (Eq. 32c), dt = dt_at[0]."""
     s = wp.tid()
-    out[s] = v0[s] + dt * v1[s]
+    out[s] = v0[s] + dt_at[0] * v1[s]
 
 
 @wp.kernel

@@ -408,3 +408,39 @@ def wp_nan():
     import warp as wp
 
     return wp.vec3d(float("nan"), 0.0, 0.0)
+
+
+def _landing(capture: bool, monkeypatch) -> tuple[EolBody, list[np.ndarray], int]:
+    """A soft box (0.6 m, 12 cells) dropped 0.72 m flat onto a frictionless plane: it lands,
+    squashes past its padding (the grid grows) and rebounds (``test_eol_fidelity``'s landing). Its surface after each frame,
+    and how many steps replayed a captured finish."""
+    monkeypatch.setattr(EolBody, "capture_finish", capture)
+    replays = []
+    real = wp.capture_launch
+    monkeypatch.setattr(wp, "capture_launch", lambda graph, *a, **k: (replays.append(1), real(graph, *a, **k)))
+    w = wsim.World(fps=30, gravity=(0.0, -9.81, 0.0), device="cpu")
+    w.add_collider(wsim.GroundPlane(0.0, friction=0.0))
+    box = trimesh.creation.box(extents=(0.6, 0.6, 0.6))
+    box.apply_translation((0.0, 0.72 + 0.3, 0.0))
+    b = w.add(EolBody(box, wsim.ElasticMaterial(E=5e4, nu=0.3, rho=500.0), resolution=12, damping=20.0))
+    frames = []
+    for _ in range(20):
+        w.step()
+        frames.append(b.points())
+    return b, frames, len(replays)
+
+
+def test_captured_finish_replays_the_launches_exactly(monkeypatch):
+    """A step's finish (advection, tracking, the force pass, the momentum restore) replayed as one
+    captured graph (``EolBody._finish_graph``; on CUDA by default, here on the CPU, where Warp
+    captures too) gives the same body, bit for bit, as its launches one by one: through free fall,
+    the landing, the grid growing (which recaptures) and the rebound. Each step's dt reaches the
+    kernels through the device (``_dt_at``), so a replay uses its own step's."""
+    direct, frames_direct, none = _landing(False, monkeypatch)
+    graph, frames_graph, replays = _landing(True, monkeypatch)
+    assert none == 0 and replays > 0.8 * graph.steps
+    assert any(c > c0 for c, c0 in zip(graph.grid.cells, graph._grid0.cells))  # it grew: recaptured
+    assert graph.steps == direct.steps
+    for a, b in zip(frames_direct, frames_graph):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(direct.state.z.numpy(), graph.state.z.numpy())

@@ -20,11 +20,11 @@ def check_scheme(scheme: str, what: str = "advection") -> str:
     return scheme
 
 
-def advect_arrays(q: wp.array, v: wp.array, out: wp.array, grid: Grid, dt: float, scheme: str,
+def advect_arrays(q: wp.array, v: wp.array, out: wp.array, grid: Grid, dt_at: wp.array, scheme: str,
                   scratch: tuple[wp.array, wp.array] | None, device, limit: bool = True,
                   launcher: Launcher | None = None) -> None:
-    """out = q advected by v over dt [s]; 3-D vec3d node arrays on ``grid`` (a ``Grid`` struct;
-    ``out`` must not alias ``q``).
+    """out = q advected by v over dt [s] (``dt_at[0]``, on the device); 3-D vec3d node arrays on
+    ``grid`` (a ``Grid`` struct; ``out`` must not alias ``q``).
 
     ``semi-lagrangian`` is first order and diffusive (the paper's scheme, which its time-step rule
     Eq. 30 assumes); ``bfecc`` costs three semi-Lagrangian passes, is second order on smooth
@@ -33,18 +33,18 @@ def advect_arrays(q: wp.array, v: wp.array, out: wp.array, grid: Grid, dt: float
     max-norm order drops below 2 there).
     """
     shape = q.shape
-    dtw = wp.float64(dt)
+    ahead, back_ = wp.float64(1.0), wp.float64(-1.0)
     if scheme == "semi-lagrangian":
-        launch_on(device, launcher, ka.semi_lagrangian, shape, [q, v, grid, dtw, out])
+        launch_on(device, launcher, ka.semi_lagrangian, shape, [q, v, grid, dt_at, ahead, out])
         return
     fwd, back = scratch  # type: ignore[misc]
-    launch_on(device, launcher, ka.semi_lagrangian, shape, [q, v, grid, dtw, fwd])
-    launch_on(device, launcher, ka.semi_lagrangian, shape, [fwd, v, grid, wp.float64(-dt), back])
+    launch_on(device, launcher, ka.semi_lagrangian, shape, [q, v, grid, dt_at, ahead, fwd])
+    launch_on(device, launcher, ka.semi_lagrangian, shape, [fwd, v, grid, dt_at, back_, back])
     launch_on(device, launcher, ka.bfecc_combine, shape, [q, back, fwd])
     if limit:
-        launch_on(device, launcher, ka.semi_lagrangian_limited, shape, [fwd, q, v, grid, dtw, out])
+        launch_on(device, launcher, ka.semi_lagrangian_limited, shape, [fwd, q, v, grid, dt_at, out])
     else:
-        launch_on(device, launcher, ka.semi_lagrangian, shape, [fwd, v, grid, dtw, out])
+        launch_on(device, launcher, ka.semi_lagrangian, shape, [fwd, v, grid, dt_at, ahead, out])
 
 
 def extend_reference_map(z: wp.array, mass: wp.array, h: float, layers: int, layer: wp.array, G: wp.array,
@@ -70,5 +70,6 @@ def advect(grid: EolGrid, q: np.ndarray, v: np.ndarray, dt: float, scheme: str =
     va = wp.array(np.asarray(v, dtype=np.float64).reshape(*shape, 3), dtype=wp.vec3d, device=device)
     out = wp.empty_like(qa)
     scratch = (wp.empty_like(qa), wp.empty_like(qa)) if scheme == "bfecc" else None
-    advect_arrays(qa, va, out, grid_struct(grid), dt, scheme, scratch, device, limit)
+    dt_at = wp.array([dt], dtype=wp.float64, device=device)
+    advect_arrays(qa, va, out, grid_struct(grid), dt_at, scheme, scratch, device, limit)
     return out.numpy().reshape(-1, 3)
