@@ -63,3 +63,19 @@ def test_copy_matches_the_source(device, rng):
             src = wp.array(rng.standard_normal(shape), dtype=dtype, device=device)
             launch.copy(dst, src)
             np.testing.assert_array_equal(dst.numpy(), src.numpy())
+
+
+@wp.kernel
+def reciprocal(s: wp.float64, out: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    out[i] = wp.float64(1.0) / s
+
+
+def test_replay_tells_negative_zero_and_takes_numpy_sizes():
+    """-0.0 == 0.0, but a kernel tells them apart (1 / s): a replay re-packs it. A NumPy integer
+    launch size is a size like any other."""
+    launch = Launcher(wp.get_device("cpu"))
+    out = wp.zeros(3, dtype=wp.float64, device="cpu")
+    for s in (0.0, -0.0, wp.float64(0.0), wp.float64(-0.0)):
+        launch(reciprocal, np.int64(3), [s if isinstance(s, float) else s, out])
+        assert np.all(out.numpy() == (np.inf if np.copysign(1.0, float(getattr(s, "value", s))) > 0 else -np.inf))

@@ -20,6 +20,7 @@ Anything else is re-packed, so a replay launches exactly what ``wp.launch`` woul
 from __future__ import annotations
 
 import ctypes
+import math
 import sys
 from typing import Any
 
@@ -45,10 +46,11 @@ def _same(new: Any, old: Any) -> bool:
                 and new.dtype == old.dtype)
     if isinstance(new, ctypes.Array):
         return bytes(new) == bytes(old)
-    if isinstance(new, (int, float, bool, np.number)):
-        return bool(new == old)
     if isinstance(new, _WARP_SCALAR):  # wp.float64(x) and kin
-        return new.value == old.value
+        new, old = new.value, old.value
+    if isinstance(new, (int, float, bool, np.number)):
+        # equal and of the same sign: -0.0 == 0.0, but a kernel can tell them apart (1 / x)
+        return bool(new == old) and math.copysign(1.0, new) == math.copysign(1.0, old)
     return False
 
 
@@ -78,7 +80,7 @@ class Launcher:
         variants = self._cmds.get(site)
         if variants is None:
             variants = self._cmds[site] = {}
-        sig = (dim if isinstance(dim, int) else tuple(dim),
+        sig = (int(dim) if isinstance(dim, (int, np.integer)) else tuple(int(d) for d in dim),
                *[a.ptr if isinstance(a, _ARRAY) else (a if type(a) is int else None) for a in inputs])
         entry = variants.get(sig)
         if entry is None:

@@ -1212,7 +1212,7 @@ class EolBody(VertexImpulses, Body):
         graph = self._finish_graph()
         if graph is not None:
             wp.capture_launch(graph)
-            self._tick("forces", work.t)
+            self._tick("forces", work.t)  # the finish's stages in one: advection, tracking, forces
         else:
             self._finish_launches(work.t, dt)
         st.gravity_impulse = st.gravity_impulse + dt * self._m_total * self._gravity
@@ -1265,18 +1265,27 @@ class EolBody(VertexImpulses, Body):
         use = self.capture_finish if self.capture_finish is not None else self._device.is_cuda
         if not use or self.profile or self.lagrangian == "affine" or self.plasticity is not None:
             return None
+        # the settings the captured launches took by value: a change (they are public) recaptures
+        key = (self.hourglass, self.material.mu, self.material.lam, self.material.rho, self._mass_floor,
+               self._positive["track_tol"], self._filled is not None)
+        if self._graph is not None and key != self._graph_key:
+            self._forget_finish()
         if self._graph is None:
             if not self._graph_ready:
                 self._graph_ready = True
                 return None
+            timings = dict(self.timings)  # the capture runs the Python once: its ticks are no step's
             with wp.ScopedCapture(device=self._device) as capture:
-                self._finish_launches(0.0, 0.0)
-            self._graph = capture.graph
+                self._finish_launches(time.perf_counter(), 0.0)
+            self.timings.clear()
+            self.timings.update(timings)
+            self._graph, self._graph_key = capture.graph, key
         return self._graph
 
     def _forget_finish(self) -> None:
         """Drop the captured finish: the arrays it launches with are about to change."""
         self._graph = None
+        self._graph_key = None
         self._graph_ready = False
 
     def _split(self, w0: wp.array, w1: wp.array) -> None:
