@@ -3,9 +3,11 @@ Python function (cProfile), for the cases of bench_eol.py.
 
     python tools/profile_eol.py --resolution 32 --cases free,contact --collision-block 1,2 --device cuda:0
 
-Prints one JSON object per case: wall ms per step (no profiler), the kernels' summed GPU ms per
-step (so wall - GPU is host time the GPU waits on), the top kernels, and the top host functions by
-own time. Each case first steps ``--warmup`` steps (the contact case settles into its patch).
+Prints one JSON object per case: wall ms per step (no profiler) and of it the host's waits in
+device-to-host reads (``wp.array.numpy``, which synchronizes: wall - wait is the host's own Python
+and launch work), the kernels' summed GPU ms per step and launches per step (CUDA activity timing:
+a replayed graph counts as one), the top kernels, and the top host functions by own time. Each
+case first steps ``--warmup`` steps (the contact case settles into its patch).
 """
 
 from __future__ import annotations
@@ -42,12 +44,25 @@ def profile_case(case: str, resolution: int, block: int, device: str, warmup: in
     world.step()  # binds the colliders, compiles the kernels
     steps(body, warmup)
     wp.synchronize_device(device)
-    t0 = time.perf_counter()
-    steps(body, n)
-    wp.synchronize_device(device)
-    wall = (time.perf_counter() - t0) / n
+    real_numpy, waited = wp.array.numpy, [0.0]
+
+    def timed_numpy(self):
+        t = time.perf_counter()
+        try:
+            return real_numpy(self)
+        finally:
+            waited[0] += time.perf_counter() - t
+
+    wp.array.numpy = timed_numpy
+    try:
+        t0 = time.perf_counter()
+        steps(body, n)
+        wp.synchronize_device(device)
+        wall = (time.perf_counter() - t0) / n
+    finally:
+        wp.array.numpy = real_numpy
     out: dict = {"case": case, "resolution": resolution, "collision_block": block, "damping": damping, "device": wp.get_device(device).name,
-                 "wall_ms_per_step": 1e3 * wall,
+                 "wall_ms_per_step": 1e3 * wall, "wait_ms_per_step": 1e3 * waited[0] / n,
                  "rows_mean": float(np.mean([r.rows for r in body.history[-n:]])),
                  "qp_iterations_mean": float(np.mean([r.qp_iterations for r in body.history[-n:]]))}
     if wp.get_device(device).is_cuda:
@@ -59,6 +74,7 @@ def profile_case(case: str, resolution: int, block: int, device: str, warmup: in
             per[r.name][0] += 1
             per[r.name][1] += r.elapsed
         out["gpu_ms_per_step"] = sum(v[1] for v in per.values()) / n
+        out["launches_per_step"] = sum(v[0] for v in per.values()) / n
         out["kernels"] = {k: {"launches": v[0] / n, "ms": v[1] / n}
                           for k, v in sorted(per.items(), key=lambda kv: -kv[1][1])[:top]}
     pr = cProfile.Profile()
