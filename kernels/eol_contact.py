@@ -291,6 +291,16 @@ def place_surface(p0: wp.array(dtype=wp.vec3d), p1: wp.array(dtype=wp.vec3d), f:
     cur[i] = wp.vec3(float(p[0]), float(p[1]), float(p[2]))
 
 
+@wp.struct
+class SurfaceHits:
+    """Per contact sample, where it is inside a moving partner's surface (``surface_rows``): its
+    row slot (-1: outside), the nearest face and the barycentric weights of the nearest point."""
+
+    row: wp.array(dtype=wp.int32)
+    bary: wp.array(dtype=wp.vec3d)
+    face: wp.array(dtype=wp.int32)
+
+
 @wp.kernel
 def surface_rows(
     surf: ContactSurface,
@@ -301,9 +311,7 @@ def surface_rows(
     collider: int,
     acc: wp.array2d(dtype=wp.float64),
     flag: wp.array(dtype=wp.int32),
-    hit_row: wp.array(dtype=wp.int32),
-    hit_bary: wp.array(dtype=wp.vec3d),
-    hit_face: wp.array(dtype=wp.int32),
+    hits: SurfaceHits,
 ):
     """Samples inside another body's closed surface (``mesh``, world coordinates, where it is at
     this step; issue 18), which moves with the velocities of its vertices (``velocity``,
@@ -312,10 +320,10 @@ def surface_rows(
     two equal spheres kept 37 % of their kinetic energy where one on a rigid wall keeps 74 %, and
     their faces overlapped by 0.6 cell as they parted (the partner's springing back was not seen).
     Each sample inside records its row slot, the nearest face and its barycentric weights
-    (``hit_*``; row -1: outside), so that ``surface_reaction`` can hand the partner the opposite
+    (``hits``; row -1: outside), so that ``surface_reaction`` can hand the partner the opposite
     of what the rows push this body with. ``closed``: ``query_inside``'s test for that surface."""
     i = wp.tid()
-    hit_row[i] = -1
+    hits.row[i] = -1
     yp, x, an = sample_world(surf, i)
     p = wp.vec3(float(x[0]), float(x[1]), float(x[2]))
     q = query_inside(mesh, p, max_dist, closed)
@@ -327,27 +335,34 @@ def surface_rows(
         v_local = wp.vec3d()
         for k in range(3):
             v_local += b[k] * velocity[wp.mesh_get_index(mesh, 3 * q.face + k)]
-        hit_row[i] = add_sample(acc, flag, surf, collider, yp, an, cn, wp.float64(wp.length(closest - p)), v_local)
-        hit_bary[i] = b
-        hit_face[i] = q.face
+        hits.row[i] = add_sample(acc, flag, surf, collider, yp, an, cn, wp.float64(wp.length(closest - p)), v_local)
+        hits.bary[i] = b
+        hits.face[i] = q.face
 
 
 @wp.func
-def hit_packed_row(hit_row: wp.array(dtype=wp.int32), row_of_slot: wp.array(dtype=wp.int32), i: int) -> int:
+def hit_packed_row(hits: SurfaceHits, row_of_slot: wp.array(dtype=wp.int32), i: int) -> int:
     """The packed row of sample i's hit on a partner's surface (``surface_rows``), -1 if none."""
-    slot = hit_row[i]
+    slot = hits.row[i]
     if slot < 0:
         return -1
     return row_of_slot[slot]
+
+
+@wp.func
+def hit_push(surf: ContactSurface, mesh: wp.uint64, f: int, i: int):
+    """Sample i's intermediate point, its pushed area c_s = -|n_A . n_B| n_B dGamma against face f of a
+    partner's surface (``pushed_area``, world) and that face's normal n_B."""
+    yp, x, an = sample_world(surf, i)
+    cn = vec3d_of(wp.mesh_eval_face_normal(mesh, f))
+    return yp, pushed_area(an, cn), cn
 
 
 @wp.kernel
 def surface_reaction(
     surf: ContactSurface,
     mesh: wp.uint64,
-    hit_row: wp.array(dtype=wp.int32),
-    hit_bary: wp.array(dtype=wp.vec3d),
-    hit_face: wp.array(dtype=wp.int32),
+    hits: SurfaceHits,
     row_of_slot: wp.array(dtype=wp.int32),
     lam: wp.array2d(dtype=wp.float64),
     dt: wp.float64,
@@ -362,17 +377,15 @@ def surface_reaction(
     how the friction's reaction is spread). ``lam`` (lambda_0, lambda_1) is per packed row; the
     step's multiplier is lambda_0 + dt lambda_1."""
     i = wp.tid()
-    r = hit_packed_row(hit_row, row_of_slot, i)
+    r = hit_packed_row(hits, row_of_slot, i)
     if r < 0:
         return
     l = lam[r, 0] + dt * lam[r, 1]
     if l == wp.float64(0.0):
         return
-    yp, x, an = sample_world(surf, i)
-    f = hit_face[i]
-    n = wp.mesh_eval_face_normal(mesh, f)
-    cn = wp.vec3d(wp.float64(n[0]), wp.float64(n[1]), wp.float64(n[2]))
-    J = l * pushed_area(an, cn)
+    f = hits.face[i]
+    yp, c, cn = hit_push(surf, mesh, f, i)
+    J = l * c
     # the rows push this body's nodes at their mass-weighted centroid, not at the sample: the
     # partner takes J at its nearest point shifted along its face by the same offset (barycentric
     # weights of the shifted point, negative outside the face), so the pair's angular momentum
@@ -382,7 +395,7 @@ def surface_reaction(
     v0 = vec3d_of(wp.mesh_eval_position(mesh, f, 1.0, 0.0))
     v1 = vec3d_of(wp.mesh_eval_position(mesh, f, 0.0, 1.0))
     v2 = vec3d_of(wp.mesh_eval_position(mesh, f, 0.0, 0.0))
-    b = hit_bary[i]
+    b = hits.bary[i]
     for k in range(3):
         wp.atomic_add(weight, wp.mesh_get_index(mesh, 3 * f + k), b[k] * wp.length(J))
     q = b[0] * v0 + b[1] * v1 + b[2] * v2 + d - v0
@@ -631,9 +644,7 @@ def node_friction(
 def partner_wrenches(
     surf: ContactSurface,
     mesh: wp.uint64,
-    hit_row: wp.array(dtype=wp.int32),
-    hit_face: wp.array(dtype=wp.int32),
-    hit_bary: wp.array(dtype=wp.vec3d),
+    hits: SurfaceHits,
     row_of_slot: wp.array(dtype=wp.int32),
     com: wp.vec3d,
     wrench: wp.array2d(dtype=wp.vec3d),
@@ -645,14 +656,12 @@ def partner_wrenches(
     takes the partner's velocity (``surface_rows``). ``wrench`` is zeroed on its first m rows
     beforehand."""
     i = wp.tid()
-    r = hit_packed_row(hit_row, row_of_slot, i)
+    r = hit_packed_row(hits, row_of_slot, i)
     if r < 0:
         return
-    yp, x, an = sample_world(surf, i)
-    f = hit_face[i]
-    n = wp.mesh_eval_face_normal(mesh, f)
-    c = pushed_area(an, wp.vec3d(wp.float64(n[0]), wp.float64(n[1]), wp.float64(n[2])))
-    b = hit_bary[i]
+    f = hits.face[i]
+    yp, c, cn = hit_push(surf, mesh, f, i)
+    b = hits.bary[i]
     p = vec3d_of(wp.mesh_eval_position(mesh, f, float(b[0]), float(b[1])))
     wp.atomic_add(wrench, r, 0, c)
     wp.atomic_add(wrench, r, 1, wp.cross(p - com, c))

@@ -99,7 +99,7 @@ class _MovingSurface:
     mu: float = 0.0
     reach: float = 0.0
     closed: int = 1  # the inside test of ``kernels.mesh.query_inside`` (``wsim.mesh.inside_test``)
-    hits: tuple | None = None
+    hits: Any = None  # ``kernels.eol_contact.SurfaceHits`` of this body's contact samples
     rigid: tuple | None = None  # (1 / M, I^-1 (world), com at the end, mean shift over the advance): it yields
     wrench: wp.array | None = None  # per row, what a unit multiplier does to it (``partner_wrenches``)
     push: wp.array | None = None  # a step's reaction as momentum and angular momentum (``partner_push``)
@@ -982,8 +982,10 @@ class EolBody(VertexImpulses, Body):
         P = 0 if self._surface is None else self._surface.sample_face.shape[0]
         for ms in moving:
             if ms.hits is None:  # per contact sample: its row, barycentric weights and face on this surface
-                ms.hits = (wp.full(P, -1, dtype=wp.int32, device=d), wp.zeros(P, dtype=wp.vec3d, device=d),
-                           wp.zeros(P, dtype=wp.int32, device=d))
+                ms.hits = kc.SurfaceHits()
+                ms.hits.row = wp.full(P, -1, dtype=wp.int32, device=d)
+                ms.hits.bary = wp.zeros(P, dtype=wp.vec3d, device=d)
+                ms.hits.face = wp.zeros(P, dtype=wp.int32, device=d)
 
     def moving_surface_impulses(self) -> dict[int, np.ndarray]:
         """Momentum [N s] (V, 3) per vertex that each moving surface received from this body over
@@ -1396,7 +1398,7 @@ class EolBody(VertexImpulses, Body):
             ms.mesh.refit()
             self._launch(kc.surface_rows, surf.sample_face.shape[0],
                       [surf, ms.mesh.id, ms.closed, ms.velocity, float(ms.reach), len(self._colliders) + k,
-                              self._row_acc, self._row_flag, *ms.hits])
+                              self._row_acc, self._row_flag, ms.hits])
 
     def _place_surface(self) -> None:
         """The contact samples' Lagrangian map and axes at the current state."""
@@ -1514,7 +1516,7 @@ class EolBody(VertexImpulses, Body):
             ms.step_impulse.zero_()
             ms.step_weight.zero_()
             self._launch(kc.surface_reaction, self._surface.sample_face.shape[0],
-                         [self._surface, ms.mesh.id, *ms.hits, self._row_of_slot, self._lam, wp.float64(dt),
+                         [self._surface, ms.mesh.id, ms.hits, self._row_of_slot, self._lam, wp.float64(dt),
                           ms.step_impulse, ms.step_weight])
             self._launch(kc.accumulate, ms.p0.shape[0], [ms.impulse, ms.step_impulse])
             if ms.rigid is not None:  # the next step's rows see it yield
@@ -1586,8 +1588,8 @@ class EolBody(VertexImpulses, Body):
             else:
                 ms.wrench[:m].zero_()
             inv_M, inv_I, _, _ = ms.rigid
-            self._launch(kc.partner_wrenches, P, [self._surface, ms.mesh.id, ms.hits[0], ms.hits[2], ms.hits[1],
-                                                  self._row_of_slot, self._partner_com(ms), ms.wrench])
+            self._launch(kc.partner_wrenches, P, [self._surface, ms.mesh.id, ms.hits, self._row_of_slot,
+                                                  self._partner_com(ms), ms.wrench])
             self._launch(kc.partner_compliance, (m, m), [ms.wrench, wp.float64(inv_M), _mat(inv_I), m, self._system])
 
     def contact_rows(self) -> ContactRows | None:
