@@ -933,7 +933,10 @@ class EolBody(VertexImpulses, Body):
     def set_moving_surfaces(self, surfaces: Sequence[tuple]) -> None:
         """Surfaces of other bodies that move on their own over the coming ``advance`` and may touch
         this one (issue 18): (key, vertices at its start (V, 3), at its end (V, 3), faces (M, 3),
-        friction). They move linearly between the two; this body's contact rows
+        friction[, vertex masses (V,) or None[, (mass, centre of mass (3,), inertia (3, 3) about
+        it, world) or None]]); the vertex masses are a PBD pusher's, unused here; with the rigid
+        part the surface yields to this body's push (``kernels.eol_contact.partner_compliance``),
+        without it it is kinematic. They move linearly between the two; this body's contact rows
         (Eq. 28) keep it out of them as out of a moving collider, each at the velocity of its
         vertices, and the opposite of what the rows push with is collected per vertex
         (``moving_surface_impulses``) for the World to hand to their bodies. Called by the World
