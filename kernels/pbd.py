@@ -765,6 +765,34 @@ def update_velocities(
 
 
 @wp.kernel
+def member_bounds(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    seg: wp.array(dtype=int),
+    seg_first: wp.array(dtype=int),
+    seg_count: wp.array(dtype=int),
+    n_surface: wp.array(dtype=int),
+    bounds: wp.array2d(dtype=float),
+):
+    """Per member m of a batch: bounds[m, 0:3] = min and bounds[m, 3:6] = max of its surface
+    particles' positions, bounds[m, 6] = the largest |v| component of its particles (the broad
+    phase's swept box, ``wsim.pbd.contact.candidate_pairs``); start from +inf, -inf and 0.
+    Padding particles (past a member's count) are left out."""
+    i = wp.tid()
+    m = seg[i]
+    local = i - seg_first[m]
+    if local >= seg_count[m]:
+        return
+    vi = v[i]
+    wp.atomic_max(bounds, m, 6, wp.max(wp.abs(vi[0]), wp.max(wp.abs(vi[1]), wp.abs(vi[2]))))
+    if local < n_surface[m]:
+        xi = x[i]
+        for d in range(3):
+            wp.atomic_min(bounds, m, d, xi[d])
+            wp.atomic_max(bounds, m, 3 + d, xi[d])
+
+
+@wp.kernel
 def check_finite(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),

@@ -181,3 +181,21 @@ def test_block_moments_by_segment_equal_the_serial_sums():
     b, s = block.numpy().reshape(k, -1)[:, :22], serial.numpy().reshape(k, -1)[:, :22]
     assert np.all(s[:, 0] > 0.0)  # every body's mass is summed
     np.testing.assert_allclose(b, s, rtol=1e-12, atol=1e-12 * np.abs(s).max())
+
+
+def test_member_bounds_are_the_broad_phase_boxes(device):
+    """The broad phase reads each batch member's surface box and fastest velocity component from
+    one reduction on the device (``PbdBatch.member_bounds``): equal to the host's min, max and
+    max |v| over the member's own particles (surface particles for the box; padding left out)."""
+    w = wsim.World(fps=30.0, device=device, body_contact=True)
+    w.add_collider(wsim.GroundPlane(friction=0.5))
+    bodies = [w.add(wsim.PbdBody(mesh, dict(E=2e5, nu=0.3, rho=500.0), name=name, **kw)) for name, mesh, kw in SPEC]
+    w.step()
+    batch = bodies[0]._batch
+    assert batch is not None and all(b._batch is batch for b in bodies)
+    got = batch.member_bounds()
+    for k, b in enumerate(bodies):
+        x, v = b.particles()[: b.model.n_surface], b.velocities()
+        np.testing.assert_array_equal(got[k, 0:3], x.min(axis=0))
+        np.testing.assert_array_equal(got[k, 3:6], x.max(axis=0))
+        assert got[k, 6] == np.abs(v).max()

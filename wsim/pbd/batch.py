@@ -109,7 +109,7 @@ class PbdBatch:
         self.flags = wp.zeros(2, dtype=int, device=device)
         self._checked: tuple | None = None  # (frame, time) of the last check (``all_finite``)
         self._finite = True
-        for b, f, c in zip(bodies, first, counts):  # each body's state becomes a view of its range
+        for k, (b, f, c) in enumerate(zip(bodies, first, counts)):  # each body's state becomes a view of its range
             x, v = self.x[int(f) : int(f + c)], self.v[int(f) : int(f + c)]
             wp.copy(x, b.state.x)
             wp.copy(v, b.state.v)
@@ -117,6 +117,7 @@ class PbdBatch:
             b._graph = None  # its own recorded frame pointed at the old arrays
             b._batch = self
             b._batch_first = int(f)  # its first particle in the batch's arrays
+            b._batch_index = k  # its row of ``member_bounds``
 
     def _merge_families(self, first: np.ndarray) -> list:
         """The bodies' families of each kind as one (the constraints they project,
@@ -170,6 +171,23 @@ class PbdBatch:
             self._finite = not bool(self.flags.numpy().any())
             self._checked = (frame, time)
         return self._finite
+
+    def member_bounds(self) -> np.ndarray:
+        """(members, 7) each member's surface box (min, max) and largest |v| component, reduced on
+        the device (``kernels.pbd.member_bounds``): the broad phase reads 7 numbers a member, not
+        the batch's positions and velocities (100 members of 1.6k particles: 3.8 MB a frame, which
+        made a batch with body contact 3.4x one body's frame instead of 2.2x)."""
+        if getattr(self, "_bounds", None) is None:
+            k = len(self.bodies)
+            init = np.tile(np.array([np.inf] * 3 + [-np.inf] * 3 + [0.0], dtype=np.float32), (k, 1))
+            with wp.ScopedDevice(self._device):
+                self._bounds_init = wp.array(init, dtype=float)
+                self._bounds = wp.empty((k, 7), dtype=float)
+                self._n_surface = wp.array(np.array([b.model.n_surface for b in self.bodies], dtype=np.int32), dtype=int)
+        wp.copy(self._bounds, self._bounds_init)
+        wp.launch(kp.member_bounds, dim=self.model.n_particles, device=self._device,
+                  inputs=[self.x, self.v, self._seg, self._seg_first, self._seg_count, self._n_surface, self._bounds])
+        return self._bounds.numpy()
 
     def steps_together(self) -> bool:
         """Whether the members can take this frame as a batch (none touches another body or
