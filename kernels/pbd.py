@@ -432,14 +432,9 @@ def solve_distance(
     compliance_c = compliance[c]
     if wi + wj == 0.0:
         return
-    d = (xi - xj) + (dxi - dxj)
-    length = wp.length(d)
-    if length < 1.0e-12:
+    n, dl, defined = stretch((xi - xj) + (dxi - dxj), pi - pj, rest_c, lam_c, wi + wj, compliance_c, beta, h)
+    if not defined:
         return
-    n = d / length
-    C = length - rest_c
-    dC = length - wp.length(pi - pj)
-    dl = xpbd_delta_lambda(C, lam_c, wi + wj, dC, compliance_c, beta, h)
     if omega > 0.0:  # Jacobi (module docstring): both ends get the same scaled multiplier
         dl = dl * omega / wp.max(count[i], count[j])
         lam[c] = lam_c + dl
@@ -449,6 +444,18 @@ def solve_distance(
     lam[c] = lam_c + dl
     dx[i] = dxi + n * (wi * dl)
     dx[j] = dxj - n * (wj * dl)
+
+
+@wp.func
+def stretch(d: wp.vec3, prev: wp.vec3, rest: float, lam: float, w: float, compliance: float, beta: float, h: float):
+    """An edge's stretch step, [PBD] Eq. 10 through [XPBD] Eq. 18: its direction n = d / |d| and
+    multiplier increment for C = |d| - rest (``prev``: the edge at the substep's start, for the
+    damping's dC), and whether it is defined (not for a collapsed edge, |d| < 1e-12). The one
+    edge projection of ``solve_distance`` and ``solve_hinge_edge``."""
+    length = wp.length(d)
+    if length < 1.0e-12:
+        return wp.vec3(), 0.0, False
+    return d / length, xpbd_delta_lambda(length - rest, lam, w, length - wp.length(prev), compliance, beta, h), True
 
 
 @wp.func
@@ -592,12 +599,8 @@ def solve_hinge_edge(
     wi = q.w[2]
     wj = q.w[3]
     if k >= 0 and wi + wj > 0.0:
-        d = q.x2 - q.x3
-        length = wp.length(d)
-        if length >= 1.0e-12:
-            n = d / length
-            dl = xpbd_delta_lambda(length - rest_e, lam_e, wi + wj, length - wp.length(q.p2 - q.p3), compliance_e,
-                                   beta, h)
+        n, dl, defined = stretch(q.x2 - q.x3, q.p2 - q.p3, rest_e, lam_e, wi + wj, compliance_e, beta, h)
+        if defined:
             edge_lam[k] = lam_e + dl
             q.d2 = q.d2 + n * (wi * dl)
             q.d3 = q.d3 - n * (wj * dl)

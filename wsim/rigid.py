@@ -132,6 +132,14 @@ class RigidFrame:
         self.R = nearest_rotation(self.R)
 
 
+def point_inertia(r: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """(3, 3) second moment of points r (n, 3) (offsets from their centre) as an inertia tensor,
+    sum_k w_k (|r_k|^2 I - r_k r_k^T); unit weights when ``weights`` is None."""
+    if weights is None:
+        return (r * r).sum() * np.eye(3) - r.T @ r
+    return (weights * (r * r).sum(axis=1)).sum() * np.eye(3) - (r * weights[:, None]).T @ r
+
+
 def rigid_fit(p0: np.ndarray, p1: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
     """The rigid velocity field v(x) = G x + g (G = [omega]x) that best fits, in least squares,
     points moving from p0 to p1 (each (n, 3)) in dt seconds: the mean velocity plus the angular
@@ -142,7 +150,7 @@ def rigid_fit(p0: np.ndarray, p1: np.ndarray, dt: float) -> tuple[np.ndarray, np
     c = x.mean(axis=0)
     r = x - c
     v_mean = v.mean(axis=0)
-    inertia = (r * r).sum() * np.eye(3) - r.T @ r
+    inertia = point_inertia(r)
     omega = np.linalg.lstsq(inertia, np.cross(r, v - v_mean).sum(axis=0), rcond=1e-12)[0]
     G = cross_matrix(omega)
     return G, v_mean - G @ c

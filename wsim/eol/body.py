@@ -62,7 +62,7 @@ from wsim.kernels import eol_step as ks
 from wsim.kernels.eol_grid import grid_struct
 from wsim.launch import Launcher
 from wsim.materials import ElasticMaterial, body_material
-from wsim.rigid import advance_pose, cross_matrix, rigid_fit
+from wsim.rigid import advance_pose, cross_matrix, point_inertia, rigid_fit
 from wsim.validate import as_rotation, as_vec3, call_user, callback_array, finite_number, positive_int
 
 if TYPE_CHECKING:
@@ -543,8 +543,7 @@ class EolBody(VertexImpulses, Body):
         the centre of mass."""
         m = self.node_masses()
         x = self.node_world_positions()
-        r = x - (m @ x) / m.sum()
-        return np.sum(m * np.einsum("sd,sd->s", r, r)) * np.eye(3) - np.einsum("s,sd,se->de", m, r, r)
+        return point_inertia(x - (m @ x) / m.sum(), m)
 
     def angular_momentum(self, about: Sequence[float] | None = None) -> np.ndarray:
         """sum_s m_s (x_s - p) x x_dot_s over the nodes [kg m^2/s] (world), about p = ``about``
@@ -1866,7 +1865,7 @@ def _opposite_push(force: np.ndarray, moment: np.ndarray, weight: np.ndarray, x:
     r = x[on] - c
     w = weight[on]
     missing = -moment - np.cross(x, J).sum(axis=0)
-    A = (w * (r * r).sum(axis=1)).sum() * np.eye(3) - (r * w[:, None]).T @ r
+    A = point_inertia(r, w)
     omega = np.linalg.lstsq(A, missing, rcond=1e-10)[0]
     J[on] += w[:, None] * np.cross(omega, r)
     return J
