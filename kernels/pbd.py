@@ -767,32 +767,45 @@ def update_velocities(
     x[i] = x_pred[i] + d
 
 
+MEMBER_BLOCK = 256  # threads of a member's block in ``member_bounds``
+
+
 @wp.kernel
 def member_bounds(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
-    seg: wp.array(dtype=int),
-    seg_first: wp.array(dtype=int),
-    seg_count: wp.array(dtype=int),
+    first: wp.array(dtype=int),
+    count: wp.array(dtype=int),
     n_surface: wp.array(dtype=int),
     bounds: wp.array2d(dtype=float),
 ):
-    """Per member m of a batch: bounds[m, 0:3] = min and bounds[m, 3:6] = max of its surface
-    particles' positions, bounds[m, 6] = the largest |v| component of its particles (the broad
-    phase's swept box, ``wsim.pbd.contact.candidate_pairs``); start from +inf, -inf and 0.
-    Padding particles (past a member's count) are left out."""
-    i = wp.tid()
-    m = seg[i]
-    local = i - seg_first[m]
-    if local >= seg_count[m]:
-        return
-    vi = v[i]
-    wp.atomic_max(bounds, m, 6, wp.max(wp.abs(vi[0]), wp.max(wp.abs(vi[1]), wp.abs(vi[2]))))
-    if local < n_surface[m]:
-        xi = x[i]
-        for d in range(3):
-            wp.atomic_min(bounds, m, d, xi[d])
-            wp.atomic_max(bounds, m, 3 + d, xi[d])
+    """Per member m of a batch (one block each, launched tiled with dim = members): bounds[m, 0:3]
+    = min and bounds[m, 3:6] = max of its surface particles' positions (its first n_surface[m]),
+    bounds[m, 6] = the largest |v| component of its count[m] particles from first[m] (the broad
+    phase's swept box, ``wsim.pbd.contact.candidate_pairs``). Each lane takes every block_dim-th
+    particle, then the block reduces (``wp.tile_min``/``wp.tile_max``) and lane 0 writes: no atomics
+    and no initial values to set, so one launch and the same result every time."""
+    m, lane = wp.tid()
+    big = float(3.0e38)
+    lo = wp.vec3(big, big, big)
+    hi = wp.vec3(-big, -big, -big)
+    v_max = float(0.0)
+    f = first[m]
+    for i in range(f + lane, f + count[m], wp.block_dim()):
+        vi = v[i]
+        v_max = wp.max(v_max, wp.max(wp.abs(vi[0]), wp.max(wp.abs(vi[1]), wp.abs(vi[2]))))
+        if i - f < n_surface[m]:
+            lo = wp.min(lo, x[i])
+            hi = wp.max(hi, x[i])
+    for d in range(3):
+        t_lo = wp.tile_min(wp.tile(lo[d]))
+        t_hi = wp.tile_max(wp.tile(hi[d]))
+        if lane == 0:
+            bounds[m, d] = t_lo[0]
+            bounds[m, 3 + d] = t_hi[0]
+    t_v = wp.tile_max(wp.tile(v_max))
+    if lane == 0:
+        bounds[m, 6] = t_v[0]
 
 
 @wp.kernel

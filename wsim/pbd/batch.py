@@ -27,6 +27,7 @@ import numpy as np
 import warp as wp
 
 from wsim.kernels import pbd as kp
+from wsim.launch import Launcher
 from wsim.pbd.model import FAMILY_KINDS
 
 if TYPE_CHECKING:
@@ -174,19 +175,18 @@ class PbdBatch:
 
     def member_bounds(self) -> np.ndarray:
         """(members, 7) each member's surface box (min, max) and largest |v| component, reduced on
-        the device (``kernels.pbd.member_bounds``): the broad phase reads 7 numbers a member, not
-        the batch's positions and velocities (100 members of 1.6k particles: 3.8 MB a frame, which
-        made a batch with body contact 3.4x one body's frame instead of 2.2x)."""
+        the device (``kernels.pbd.member_bounds``, one block a member): the broad phase reads 7
+        numbers a member, not the batch's positions and velocities (100 members of 1.6k
+        particles: 3.8 MB a frame, which made a batch with body contact 3.4x one body's frame
+        instead of 2.2x). One replayed launch and one read-back: the GPU waits for this."""
         if getattr(self, "_bounds", None) is None:
-            k = len(self.bodies)
-            init = np.tile(np.array([np.inf] * 3 + [-np.inf] * 3 + [0.0], dtype=np.float32), (k, 1))
             with wp.ScopedDevice(self._device):
-                self._bounds_init = wp.array(init, dtype=float)
-                self._bounds = wp.empty((k, 7), dtype=float)
+                self._bounds = wp.empty((len(self.bodies), 7), dtype=float)
                 self._n_surface = wp.array(np.array([b.model.n_surface for b in self.bodies], dtype=np.int32), dtype=int)
-        wp.copy(self._bounds, self._bounds_init)
-        wp.launch(kp.member_bounds, dim=self.model.n_particles, device=self._device,
-                  inputs=[self.x, self.v, self._seg, self._seg_first, self._seg_count, self._n_surface, self._bounds])
+            self._bounds_launch = Launcher(self._device)
+        self._bounds_launch(kp.member_bounds, len(self.bodies),
+                            [self.x, self.v, self._seg_first, self._seg_count, self._n_surface, self._bounds],
+                            block_dim=kp.MEMBER_BLOCK)
         return self._bounds.numpy()
 
     def steps_together(self) -> bool:

@@ -29,42 +29,74 @@ if TYPE_CHECKING:
     from wsim.pbd.body import PbdBody
 
 
-def _swept_box(lo: np.ndarray, hi: np.ndarray, v_max: float, body: PbdBody, frame_dt: float,
-               reach: float) -> tuple[np.ndarray, np.ndarray]:
-    """The box [lo, hi] of the body's surface now, grown by how far it can move this frame (its
-    fastest velocity component ``v_max`` and gravity) and by ``reach``."""
-    grow = v_max * frame_dt + 0.5 * float(np.linalg.norm(body._gravity)) * frame_dt**2 + reach
-    return lo - grow, hi + grow
+def _layout_key(bodies: Sequence[PbdBody]) -> tuple:
+    return tuple((id(b), id(b._batch), b.contact_margin) for b in bodies)
 
 
-def _host_bounds(bodies: Sequence[PbdBody]) -> list[tuple[np.ndarray, np.ndarray, float]]:
-    """Each body's surface box (min, max) and largest |v| component on the host: a batch's members
-    from one reduction on the device (``PbdBatch.member_bounds``), not copies of their arrays."""
-    reduced: dict[int, np.ndarray] = {}
-    out = []
-    for b in bodies:
-        if b._batch is not None:
-            if id(b._batch) not in reduced:  # (not setdefault: its default would reduce for every member)
-                reduced[id(b._batch)] = b._batch.member_bounds().astype(np.float64)
-            row = reduced[id(b._batch)][b._batch_index]
-            out.append((row[0:3], row[3:6], float(row[6])))
-        else:
+class _BroadPhase:
+    """What the broad phase of a fixed list of bodies needs besides their current boxes: each
+    body's |g| and contact margin, and which bodies read their boxes from one batch reduction
+    (built once: per-body Python for 100 bodies each frame was time the GPU waited)."""
+
+    def __init__(self, bodies: Sequence[PbdBody]) -> None:
+        self.key = _layout_key(bodies)
+        self.g = np.array([b._gravity_norm for b in bodies])
+        self.margin = np.array([b.contact_margin for b in bodies])
+        by_batch: dict[int, tuple] = {}  # batch id -> (batch, positions in ``bodies``, rows of its reduction)
+        self.alone: list[int] = []
+        for k, b in enumerate(bodies):
+            if b._batch is not None:
+                entry = by_batch.setdefault(id(b._batch), (b._batch, [], []))
+                entry[1].append(k)
+                entry[2].append(b._batch_index)
+            else:
+                self.alone.append(k)
+        self.batches = [(batch, np.array(at), np.array(rows)) for batch, at, rows in by_batch.values()]
+
+    def bounds(self, bodies: Sequence[PbdBody]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each body's surface box (lo, hi: (n, 3)) and largest |v| component (n,) on the host: a
+        batch's members from one reduction on the device (``PbdBatch.member_bounds``), not copies
+        of their arrays."""
+        rows = np.empty((len(bodies), 7))
+        for batch, at, index in self.batches:
+            rows[at] = batch.member_bounds()[index]
+        for k in self.alone:
+            b = bodies[k]
             x, v = b.x.numpy()[: b.model.n_surface], b.v.numpy()
-            out.append((x.min(axis=0), x.max(axis=0), float(np.abs(v).max(initial=0.0))))
-    return out
+            rows[k, 0:3], rows[k, 3:6], rows[k, 6] = x.min(axis=0), x.max(axis=0), np.abs(v).max(initial=0.0)
+        return rows[:, 0:3], rows[:, 3:6], rows[:, 6]
 
 
-def candidate_pairs(bodies: Sequence[PbdBody], frame_dt: float) -> list[tuple[PbdBody, PbdBody]]:
-    """Pairs whose swept boxes overlap this frame (the broad phase, on the host once per frame)."""
+def candidate_pairs(bodies: Sequence[PbdBody], frame_dt: float, cache: dict | None = None) -> list[tuple[PbdBody, PbdBody]]:
+    """Pairs whose swept boxes overlap this frame (the broad phase, on the host once per frame):
+    each body's surface box grown by how far it can move this frame (its fastest velocity
+    component and gravity) and by its contact margin. Array operations over all bodies at once,
+    the layout kept in ``cache`` between calls: the host's time here is time the GPU waits (the
+    boxes were just read back)."""
     if len(bodies) < 2:
         return []
-    boxes = [_swept_box(lo, hi, v_max, b, frame_dt, b.contact_margin)
-             for b, (lo, hi, v_max) in zip(bodies, _host_bounds(bodies))]
-    lo, hi = np.array([bx[0] for bx in boxes]), np.array([bx[1] for bx in boxes])
-    # every pair at once: 100 bodies are 4950 pairs, whose one-by-one tests took milliseconds
-    overlap = np.all(hi[:, None, :] >= lo[None, :, :], axis=2) & np.all(hi[None, :, :] >= lo[:, None, :], axis=2)
-    i, j = np.nonzero(np.triu(overlap, k=1))
-    return [(bodies[a], bodies[b]) for a, b in zip(i.tolist(), j.tolist())]
+    layout = cache.get("broad_phase") if cache is not None else None
+    if layout is None or layout.key != _layout_key(bodies):
+        layout = _BroadPhase(bodies)
+        if cache is not None:
+            cache["broad_phase"] = layout
+    lo, hi, v_max = layout.bounds(bodies)
+    grow = (v_max * frame_dt + 0.5 * layout.g * frame_dt**2 + layout.margin)[:, None]
+    lo, hi = lo - grow, hi + grow
+    # sweep along x: sorted by lo_x, body k's x-overlaps are the next ones whose lo_x <= hi_x[k]
+    order = np.argsort(lo[:, 0], kind="stable")
+    n = len(bodies)
+    count = np.maximum(np.searchsorted(lo[order, 0], hi[order, 0], side="right") - np.arange(n) - 1, 0)
+    if not count.any():  # the common case of bodies apart: no pair arrays at all
+        return []
+    first = np.repeat(np.arange(n), count)
+    second = first + 1 + np.arange(len(first)) - np.repeat(np.cumsum(count) - count, count)
+    a, b = order[first], order[second]
+    a, b = np.minimum(a, b), np.maximum(a, b)
+    keep = np.all((hi[a, 1:] >= lo[b, 1:]) & (hi[b, 1:] >= lo[a, 1:]), axis=1)
+    a, b = a[keep], b[keep]
+    at = np.lexsort((b, a))  # the bodies' order, as the projections run in it
+    return [(bodies[i], bodies[j]) for i, j in zip(a[at].tolist(), b[at].tolist())]
 
 
 def _build_mesh(body: PbdBody) -> None:
@@ -113,21 +145,22 @@ def _lockstep_frame(group: Sequence[PbdBody], pairs: Sequence[tuple[PbdBody, Pbd
 
 def advance_together(bodies: Sequence[PbdBody], t0: float, t1: float, graphs: dict | None = None) -> None:
     """Advance PBD bodies that may touch from t0 to t1 (see the module docstring). ``graphs`` is
-    where the caller keeps the recorded lockstep frame between calls (None: not recorded)."""
+    where the caller keeps the recorded lockstep frame and the broad phase's layout between calls
+    (None: nothing kept, no frame recorded)."""
     frame_dt = round(t1 - t0, 12)
-    pairs = candidate_pairs(bodies, frame_dt)
+    pairs = candidate_pairs(bodies, frame_dt, graphs)
     touching = {id(b) for pair in pairs for b in pair}
     for b in bodies:
         if id(b) not in touching and b._contact_mesh is not None:  # back on its own: no contact corrections left over
             b._contact_mesh = None
             b.dxc.zero_()
     done: set[int] = set()
+    given = {id(b) for b in bodies}
     for b in bodies:
         if id(b) in touching or id(b) in done:
             continue
         batch = b._batch  # a batch all of whose members are free this frame steps as one (wsim.pbd.batch)
-        if batch is not None and not any(id(m) in touching for m in batch.bodies) and \
-                all(any(m is c for c in bodies) for m in batch.bodies):
+        if batch is not None and all(id(m) in given and id(m) not in touching for m in batch.bodies):
             batch.advance(t0, t1)
             done.update(id(m) for m in batch.bodies)
         else:
