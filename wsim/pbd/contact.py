@@ -5,7 +5,8 @@ the shortest h): each substep predicts every body, then each constraint iteratio
 body's own constraints and colliders and, for every pair of bodies whose frame-swept boxes
 overlap, projects the surface particles of each body out of the other's current surface
 (``wsim.kernels.pbd_contact.body_contact``: point-triangle constraints with both bodies' inverse
-masses, so the impulses are equal and opposite, and Coulomb friction). A body's surface is a Warp
+masses, so the impulses are equal and opposite, and Coulomb friction on the slip relative to the
+other surface moving at its velocity of the substep's start). A body's surface is a Warp
 mesh built from its positions once per frame and refit before each use. Contact corrections go
 to ``dxc`` like collider contact, so ``conserve_angular_momentum`` keeps them as external.
 
@@ -117,13 +118,13 @@ def _refit(body: PbdBody) -> None:
     body._contact_mesh.refit()
 
 
-def _project(a: PbdBody, b: PbdBody, mu: float) -> None:
+def _project(a: PbdBody, b: PbdBody, mu: float, h: float) -> None:
     """a's surface particles out of b's surface (b's mesh refit to its current positions)."""
     _refit(b)
     reach = b._contact_reach + max(a.contact_margin, b.contact_margin)
     wp.launch(kc.body_contact, dim=a.model.n_surface, device=a._device,
               inputs=[a.x_pred, a.dx, a.dxc, a.x_prev, a.inv_mass, b._contact_mesh.id, b.dx, b.dxc,
-                      b.x_prev, b.inv_mass, max(a.contact_margin, b.contact_margin), reach, mu, b._contact_test])
+                      b.v, h, b.inv_mass, max(a.contact_margin, b.contact_margin), reach, mu, b._contact_test])
 
 
 def _lockstep_frame(group: Sequence[PbdBody], pairs: Sequence[tuple[PbdBody, PbdBody]], mus: Sequence[float],
@@ -137,8 +138,8 @@ def _lockstep_frame(group: Sequence[PbdBody], pairs: Sequence[tuple[PbdBody, Pbd
                 if it < b.iterations:
                     b._substep_iteration(s, it, h)
             for (a, b), mu in zip(pairs, mus):
-                _project(a, b, mu)
-                _project(b, a, mu)
+                _project(a, b, mu, h)
+                _project(b, a, mu, h)
         for b in group:
             b._substep_end(h)
 
