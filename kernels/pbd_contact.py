@@ -191,11 +191,13 @@ def body_contact(
     deformable bodies). With the inverse masses w_p and w_k and W = w_p + sum_k b_k^2 w_k, a violated
     constraint moves p by w_p lambda n and q_k by -b_k w_k lambda n, lambda = -C / W: equal and
     opposite momenta, and the arm p - s along n (no torque error). Coulomb friction as against a
-    collider, on the slip of p over the substep relative to the surface point's motion h v_s
-    (v_s = sum_k b_k v_b[k], B's velocities at the substep's start), divided between the bodies the
-    same way. Not B's own displacement so far (s - s_prev): in mid-solve that holds B's half-done
+    collider, on the slip of p over the substep relative to the surface point's motion h v_s,
+    v_s = sum_k b_k v_b[k] with v_b B's surface velocities before this substep's gravity (its last
+    substep's; a handle-driven particle's is its handle's), divided between the bodies the same
+    way. Not B's displacement so far (s - s_prev): in mid-solve that holds B's half-done
     corrections, which p copied only in the iterations where it overlapped, so a cube resting on
-    a PBD box walked 0.8-1.8 mm/s. One thread per particle of A; B's particles take atomic adds (several of A's particles
+    a PBD box walked 0.8-1.8 mm/s; nor B's velocity after gravity, which a body held up by the
+    ground does not move with (a box on an inclined slab then crept downhill at h g sin(theta)). One thread per particle of A; B's particles take atomic adds (several of A's particles
     may press on one triangle of B). ``closed``: B's inside test (``wsim.mesh.inside_test``: ray
     parity for one watertight piece, else the winding number)."""
     i = wp.tid()

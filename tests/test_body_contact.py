@@ -215,6 +215,50 @@ def test_pbd_cube_resting_off_centre_on_a_pbd_box_does_not_creep(mu):
     assert rel[-1][1] > 0.17  # still on top
 
 
+def test_pbd_box_rests_on_an_inclined_pbd_slab_and_is_carried_by_a_driven_one():
+    """Friction between PBD bodies against the other surface's own motion: (1) a box resting on a
+    slab with gravity tilted 20 degrees, below the friction angle (mu 0.5: 26.6 degrees), stays
+    put on it (it crept downhill 6.4 mm/s when the slab's velocity after gravity was taken for its
+    surface's motion, uphill 4.1 mm/s against the slab's displacement in mid-solve; now 0.9 mm in
+    the second second); (2) a box on a slab whose top and bottom particles a handle accelerates at
+    1.5 m/s^2 (< mu g = 2.9) on frictionless ground is carried along (with the slab's velocity
+    after its prediction, zero for handle-driven particles, it was not dragged at all)."""
+    mat = wsim.ElasticMaterial(E=1e6, nu=0.3, rho=500.0)
+    flat = trimesh.creation.box(extents=(0.12, 0.05, 0.12)).subdivide().subdivide()
+    th = np.radians(20.0)
+    w = wsim.World(fps=60, gravity=(G * np.sin(th), -G * np.cos(th), 0.0), device="cpu")
+    w.add_collider(wsim.GroundPlane(0.0, friction=3.0))
+    slab = w.add(wsim.PbdBody(trimesh.creation.box(extents=(1.6, 0.08, 0.4)).subdivide().subdivide(), mat,
+                              tets="auto", name="slab", position=(0.0, 0.04, 0.0), friction=0.5, mass=20.0))
+    top = w.add(wsim.PbdBody(flat, mat, tets="auto", name="top", position=(-0.6, 0.1055, 0.0), friction=0.5, mass=1.0))
+    rel = []
+    for _ in range(120):
+        w.step()
+        rel.append(top.center_of_mass()[0] - slab.center_of_mass()[0])
+    assert abs(rel[-1] - rel[59]) < 2e-3
+
+    A, T = 1.5, 0.4
+    w = wsim.World(fps=60, gravity=(0.0, -G, 0.0), device="cpu")
+    w.add_collider(wsim.GroundPlane(0.0, friction=0.0))
+    slab_mesh = trimesh.creation.box(extents=(1.2, 0.08, 0.4)).subdivide().subdivide()
+    driven = np.nonzero(np.abs(slab_mesh.vertices[:, 1]) > 0.039)[0]
+
+    def motion(t: float) -> np.ndarray:
+        m = np.eye(4)
+        m[0, 3] = 0.5 * A * t * t if t < T else 0.5 * A * T * T + A * T * (t - T)
+        return m
+
+    slab = w.add(wsim.PbdBody(slab_mesh, mat, tets="auto", name="slab", position=(0.2, 0.04, 0.0), friction=0.3,
+                              mass=10.0, handles=[wsim.Handle(driven, motion)]))
+    top = w.add(wsim.PbdBody(flat, mat, tets="auto", name="top", position=(0.7, 0.1055, 0.0), friction=0.3, mass=1.0))
+    x0 = top.center_of_mass()[0] - slab.particles()[:, 0].mean()
+    for _ in range(36):
+        w.step()
+    slip = top.center_of_mass()[0] - slab.particles()[:, 0].mean() - x0
+    assert abs(slip) < 5e-3  # the slab went 0.5 A t^2 + ... = 0.24 m
+    assert top.velocities()[:, 0].mean() == pytest.approx(A * T, rel=0.02)
+
+
 def test_pbd_box_slides_to_the_coulomb_distance_on_a_pbd_slab_with_its_own_friction():
     """``PbdBody(friction=...)``: a box launched at 1 m/s across a slab resting on the ground, both
     at friction 0.3 (below the 0.5 a body that sets none has), stops within 15 % of

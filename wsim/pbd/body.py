@@ -850,6 +850,8 @@ class PbdBody(Body):
         m = self.model
         n = m.n_particles
         k = len(self._handle_idx)
+        if self._contact_mesh is not None:  # its surface's velocities before gravity: other PBD bodies' friction
+            wp.copy(self._v_start, self.v, count=self.model.n_surface)
         wp.launch(
             kp.predict_positions,
             dim=n,

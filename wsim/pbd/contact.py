@@ -107,6 +107,8 @@ def _build_mesh(body: PbdBody) -> None:
     wp.copy(body._contact_points, body.x, count=n)
     body._contact_mesh = wp.Mesh(points=body._contact_points, indices=body._contact_indices,
                                  support_winding_number=body._contact_test == 1)
+    if getattr(body, "_v_start", None) is None:  # its surface's velocities at each substep's start
+        body._v_start = wp.zeros(n, dtype=wp.vec3, device=body._device)
     x = body.x.numpy()[:n]
     # how far from its surface a query may look: a particle deep inside is still found
     body._contact_reach = float(np.linalg.norm(x.max(axis=0) - x.min(axis=0)))
@@ -124,7 +126,7 @@ def _project(a: PbdBody, b: PbdBody, mu: float, h: float) -> None:
     reach = b._contact_reach + max(a.contact_margin, b.contact_margin)
     wp.launch(kc.body_contact, dim=a.model.n_surface, device=a._device,
               inputs=[a.x_pred, a.dx, a.dxc, a.x_prev, a.inv_mass, b._contact_mesh.id, b.dx, b.dxc,
-                      b.v, h, b.inv_mass, max(a.contact_margin, b.contact_margin), reach, mu, b._contact_test])
+                      b._v_start, h, b.inv_mass, max(a.contact_margin, b.contact_margin), reach, mu, b._contact_test])
 
 
 def _lockstep_frame(group: Sequence[PbdBody], pairs: Sequence[tuple[PbdBody, PbdBody]], mus: Sequence[float],
