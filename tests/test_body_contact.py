@@ -215,14 +215,17 @@ def test_pbd_cube_resting_off_centre_on_a_pbd_box_does_not_creep(mu):
     assert rel[-1][1] > 0.17  # still on top
 
 
-def test_pbd_box_rests_on_an_inclined_pbd_slab_and_is_carried_by_a_driven_one():
+def test_pbd_box_stays_on_an_inclined_pbd_slab_held_or_sliding_and_is_carried_by_a_driven_one():
     """Friction between PBD bodies against the other surface's own motion: (1) a box resting on a
     slab with gravity tilted 20 degrees, below the friction angle (mu 0.5: 26.6 degrees), stays
     put on it (it crept downhill 6.4 mm/s when the slab's velocity after gravity was taken for its
     surface's motion, uphill 4.1 mm/s against the slab's displacement in mid-solve; now 0.9 mm in
     the second second); (2) a box on a slab whose top and bottom particles a handle accelerates at
     1.5 m/s^2 (< mu g = 2.9) on frictionless ground is carried along (with the slab's velocity
-    after its prediction, zero for handle-driven particles, it was not dragged at all)."""
+    after its prediction, zero for handle-driven particles, it was not dragged at all); (3) a box
+    riding a slab that slides down a frictionless 30 degree incline stays put on it (with the
+    slab's velocity before gravity alone it fell behind at h g sin(theta) = 8.2 mm/s; the
+    slab's acceleration as a whole, from its mean velocity's change, now extrapolates it)."""
     mat = wsim.ElasticMaterial(E=1e6, nu=0.3, rho=500.0)
     flat = trimesh.creation.box(extents=(0.12, 0.05, 0.12)).subdivide().subdivide()
     th = np.radians(20.0)
@@ -236,6 +239,20 @@ def test_pbd_box_rests_on_an_inclined_pbd_slab_and_is_carried_by_a_driven_one():
         w.step()
         rel.append(top.center_of_mass()[0] - slab.center_of_mass()[0])
     assert abs(rel[-1] - rel[59]) < 2e-3
+
+    th = np.radians(30.0)
+    w = wsim.World(fps=60, gravity=(G * np.sin(th), -G * np.cos(th), 0.0), device="cpu")
+    w.add_collider(wsim.GroundPlane(0.0, friction=0.0))
+    slab = w.add(wsim.PbdBody(trimesh.creation.box(extents=(1.6, 0.08, 0.4)).subdivide(), mat, tets="auto",
+                              name="slab", position=(0.0, 0.04, 0.0), friction=0.5, mass=20.0))
+    top = w.add(wsim.PbdBody(trimesh.creation.box(extents=(0.12, 0.05, 0.12)).subdivide(), mat, tets="auto",
+                             name="top", position=(-0.6, 0.1055, 0.0), friction=0.5, mass=1.0))
+    rel = []
+    for _ in range(60):
+        w.step()
+        rel.append(top.center_of_mass()[0] - slab.center_of_mass()[0])
+    assert slab.velocities()[:, 0].mean() == pytest.approx(G * np.sin(th), rel=0.01)  # 1 s of free sliding
+    assert abs(rel[-1] - rel[29]) < 1e-3
 
     A, T = 1.5, 0.4
     w = wsim.World(fps=60, gravity=(0.0, -G, 0.0), device="cpu")

@@ -107,11 +107,21 @@ def _build_mesh(body: PbdBody) -> None:
     wp.copy(body._contact_points, body.x, count=n)
     body._contact_mesh = wp.Mesh(points=body._contact_points, indices=body._contact_indices,
                                  support_winding_number=body._contact_test == 1)
-    if getattr(body, "_v_start", None) is None:  # its surface's velocities at each substep's start
+    if getattr(body, "_v_start", None) is None:  # its velocities at each substep's start (_contact_velocities)
         body._v_start = wp.zeros(n, dtype=wp.vec3, device=body._device)
+        body._v_sums = wp.zeros(4, dtype=wp.float64, device=body._device)
+        body._v_mean = wp.zeros(2, dtype=wp.vec3, device=body._device)
     x = body.x.numpy()[:n]
     # how far from its surface a query may look: a particle deep inside is still found
     body._contact_reach = float(np.linalg.norm(x.max(axis=0) - x.min(axis=0)))
+
+
+def _start_mean_velocities(bodies: Sequence[PbdBody]) -> None:
+    """Bodies that come into contact: their mean velocity at "the last substep's start" taken as
+    now (no extrapolation in their first substep; its history is stale or missing)."""
+    for b in bodies:
+        b._contact_velocities()
+        b._contact_velocities()
 
 
 def _refit(body: PbdBody) -> None:
@@ -126,7 +136,7 @@ def _project(a: PbdBody, b: PbdBody, mu: float, h: float) -> None:
     reach = b._contact_reach + max(a.contact_margin, b.contact_margin)
     wp.launch(kc.body_contact, dim=a.model.n_surface, device=a._device,
               inputs=[a.x_pred, a.dx, a.dxc, a.x_prev, a.inv_mass, b._contact_mesh.id, b.dx, b.dxc,
-                      b._v_start, h, b.inv_mass, max(a.contact_margin, b.contact_margin), reach, mu, b._contact_test])
+                      b._v_start, b._v_mean, h, b.inv_mass, max(a.contact_margin, b.contact_margin), reach, mu, b._contact_test])
 
 
 def _lockstep_frame(group: Sequence[PbdBody], pairs: Sequence[tuple[PbdBody, PbdBody]], mus: Sequence[float],
@@ -179,6 +189,7 @@ def advance_together(bodies: Sequence[PbdBody], t0: float, t1: float, graphs: di
            tuple((ms.key, ms.mesh.id) for b in group for ms in b._moving))  # other methods' surfaces too
     use_graph = graphs is not None and device.is_cuda and all(b.use_graph for b in group)
     with wp.ScopedDevice(device):
+        fresh = [b for b in group if b._contact_mesh is None]  # not touching last frame
         for b in group:
             if b._layout != (substeps, h):
                 b._prepare_layout(substeps, h)
@@ -187,10 +198,12 @@ def advance_together(bodies: Sequence[PbdBody], t0: float, t1: float, graphs: di
         if recorded is not None and recorded[0] == key:
             for b, mesh in zip(group, recorded[2]):
                 b._contact_mesh = mesh  # the meshes the graph queries (their ids are baked in)
+            _start_mean_velocities(fresh)
             wp.capture_launch(recorded[1])
             return
         for b in group:
             _build_mesh(b)
+        _start_mean_velocities(fresh)
         if not use_graph:
             _lockstep_frame(group, pairs, mus, substeps, h)
             return
