@@ -800,11 +800,14 @@ MEMBER_BLOCK = 256  # threads of a member's block in ``member_bounds``
 
 @wp.kernel
 def member_bounds(
+    # state in
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
+    # the batch's layout
     first: wp.array(dtype=int),
     count: wp.array(dtype=int),
     n_surface: wp.array(dtype=int),
+    # out
     bounds: wp.array2d(dtype=float),
 ):
     """Per member m of a batch (one block each, launched tiled with dim = members): bounds[m, 0:3]

@@ -200,8 +200,10 @@ def body_contact(
     down a frictionless incline). Not B's displacement so far (s - s_prev): in mid-solve that
     holds B's half-done corrections, which p copied only in the iterations where it overlapped,
     so a cube resting on a PBD box walked 0.8-1.8 mm/s; nor B's velocity after gravity (a box on
-    a slab the ground holds up, tilted 20 degrees, crept downhill at h g sin(theta)). One thread per particle of A; B's particles take atomic adds (several of A's particles
-    may press on one triangle of B). ``closed``: B's inside test (``wsim.mesh.inside_test``: ray
+    a slab the ground holds up, tilted 20 degrees, crept downhill at h g sin(theta)).
+
+    One thread per particle of A; B's particles take atomic adds (several of A's particles may
+    press on one triangle of B). ``closed``: B's inside test (``wsim.mesh.inside_test``: ray
     parity for one watertight piece, else the winding number)."""
     i = wp.tid()
     w_p = inv_mass[i]

@@ -192,7 +192,7 @@ def test_pbd_box_rests_on_a_pbd_box_on_the_ground():
 
 
 @pytest.mark.parametrize("mu", [0.5, 2.0])
-def test_pbd_cube_resting_off_centre_on_a_pbd_box_does_not_creep(mu):
+def test_pbd_cube_resting_off_centre_on_a_pbd_box_does_not_creep(mu, device):
     """A cube resting off centre on a box that rests on the ground (default damping) stays where
     it is: over the second second its centre moves less than 0.2 mm relative to the box's. The
     friction between the bodies holds the cube to the box's surface as it moves over the substep,
@@ -201,7 +201,7 @@ def test_pbd_cube_resting_off_centre_on_a_pbd_box_does_not_creep(mu):
     corrections only in the iterations where it overlapped, and moved 0.78 mm (friction 0.5) and
     1.84 mm (friction 2) in that second; now about 0.025 mm, and 0 on a static mesh collider of
     the box's shape."""
-    w = wsim.World(fps=60, gravity=(0.0, -G, 0.0), device="cpu")
+    w = wsim.World(fps=60, gravity=(0.0, -G, 0.0), device=device)
     w.add_collider(wsim.GroundPlane(0.0, friction=0.8))
     box = trimesh.creation.box(extents=(0.4, 0.2, 0.4)).subdivide().subdivide()
     cube = trimesh.creation.box(extents=(0.15, 0.15, 0.15)).subdivide().subdivide()
@@ -215,7 +215,7 @@ def test_pbd_cube_resting_off_centre_on_a_pbd_box_does_not_creep(mu):
     assert rel[-1][1] > 0.17  # still on top
 
 
-def test_pbd_box_stays_on_an_inclined_pbd_slab_held_or_sliding_and_is_carried_by_a_driven_one():
+def test_pbd_box_stays_on_an_inclined_pbd_slab_held_or_sliding_and_is_carried_by_a_driven_one(device):
     """Friction between PBD bodies against the other surface's own motion: (1) a box resting on a
     slab with gravity tilted 20 degrees, below the friction angle (mu 0.5: 26.6 degrees), stays
     put on it (it crept downhill 6.4 mm/s when the slab's velocity after gravity was taken for its
@@ -229,7 +229,7 @@ def test_pbd_box_stays_on_an_inclined_pbd_slab_held_or_sliding_and_is_carried_by
     mat = wsim.ElasticMaterial(E=1e6, nu=0.3, rho=500.0)
     flat = trimesh.creation.box(extents=(0.12, 0.05, 0.12)).subdivide().subdivide()
     th = np.radians(20.0)
-    w = wsim.World(fps=60, gravity=(G * np.sin(th), -G * np.cos(th), 0.0), device="cpu")
+    w = wsim.World(fps=60, gravity=(G * np.sin(th), -G * np.cos(th), 0.0), device=device)
     w.add_collider(wsim.GroundPlane(0.0, friction=3.0))
     slab = w.add(wsim.PbdBody(trimesh.creation.box(extents=(1.6, 0.08, 0.4)).subdivide().subdivide(), mat,
                               tets="auto", name="slab", position=(0.0, 0.04, 0.0), friction=0.5, mass=20.0))
@@ -241,7 +241,7 @@ def test_pbd_box_stays_on_an_inclined_pbd_slab_held_or_sliding_and_is_carried_by
     assert abs(rel[-1] - rel[59]) < 2e-3
 
     th = np.radians(30.0)
-    w = wsim.World(fps=60, gravity=(G * np.sin(th), -G * np.cos(th), 0.0), device="cpu")
+    w = wsim.World(fps=60, gravity=(G * np.sin(th), -G * np.cos(th), 0.0), device=device)
     w.add_collider(wsim.GroundPlane(0.0, friction=0.0))
     slab = w.add(wsim.PbdBody(trimesh.creation.box(extents=(1.6, 0.08, 0.4)).subdivide(), mat, tets="auto",
                               name="slab", position=(0.0, 0.04, 0.0), friction=0.5, mass=20.0))
@@ -255,7 +255,7 @@ def test_pbd_box_stays_on_an_inclined_pbd_slab_held_or_sliding_and_is_carried_by
     assert abs(rel[-1] - rel[29]) < 1e-3
 
     A, T = 1.5, 0.4
-    w = wsim.World(fps=60, gravity=(0.0, -G, 0.0), device="cpu")
+    w = wsim.World(fps=60, gravity=(0.0, -G, 0.0), device=device)
     w.add_collider(wsim.GroundPlane(0.0, friction=0.0))
     slab_mesh = trimesh.creation.box(extents=(1.2, 0.08, 0.4)).subdivide().subdivide()
     driven = np.nonzero(np.abs(slab_mesh.vertices[:, 1]) > 0.039)[0]

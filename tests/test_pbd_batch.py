@@ -199,3 +199,34 @@ def test_member_bounds_are_the_broad_phase_boxes(device):
         np.testing.assert_array_equal(got[k, 0:3], x.min(axis=0))
         np.testing.assert_array_equal(got[k, 3:6], x.max(axis=0))
         assert got[k, 6] == np.abs(v).max()
+
+
+def test_broad_phase_sweep_gives_the_all_pairs_test_pairs_in_order():
+    """``candidate_pairs`` sweeps along x and tests y and z on the candidates only: the same pairs,
+    in the same order (the order the projections run in), as testing every pair of swept boxes,
+    on random boxes with many equal lower x bounds, margins, velocities and gravity."""
+    from types import SimpleNamespace
+
+    from wsim.pbd import contact
+
+    rng = np.random.default_rng(7)
+    dt = 1.0 / 60.0
+    for trial in range(200):
+        n = int(rng.integers(2, 30))
+        lo = rng.random((n, 3)) * rng.choice([0.5, 3.0])
+        if trial % 2:
+            lo[:, 0] = np.round(lo[:, 0], 1)  # ties along the sweep axis
+        hi = lo + rng.random((n, 3)) * 0.4
+        v_max = rng.random(n) * rng.choice([0.0, 2.0])
+        bodies = [SimpleNamespace(_gravity_norm=9.81 * (trial % 3 > 0), contact_margin=0.01 * (k % 2), _batch=None)
+                  for k in range(n)]
+        layout = contact._BroadPhase(bodies)
+        layout.bounds = lambda _bodies, lo=lo, hi=hi, v=v_max: (lo.copy(), hi.copy(), v.copy())
+        at = {id(b): k for k, b in enumerate(bodies)}
+        got = [(at[id(a)], at[id(b)]) for a, b in contact.candidate_pairs(bodies, dt, {"broad_phase": layout})]
+        g = np.array([b._gravity_norm for b in bodies])
+        grow = (v_max * dt + 0.5 * g * dt**2 + np.array([b.contact_margin for b in bodies]))[:, None]
+        a_lo, a_hi = lo - grow, hi + grow
+        overlap = np.all(a_hi[:, None, :] >= a_lo[None, :, :], axis=2) & np.all(a_hi[None, :, :] >= a_lo[:, None, :], axis=2)
+        i, j = np.nonzero(np.triu(overlap, k=1))
+        assert got == list(zip(i.tolist(), j.tolist())), trial

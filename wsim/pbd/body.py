@@ -660,7 +660,8 @@ class PbdBody(Body):
     @staticmethod
     def advance_together(bodies: Sequence[PbdBody], t0: float, t1: float, graphs: dict | None = None) -> None:
         """Advance PBD bodies of one World that may touch each other (``wsim.pbd.contact``);
-        ``graphs``: the caller's store for the recorded lockstep frame."""
+        ``graphs``: the caller's store for what is kept between frames (the recorded lockstep
+        frame, the broad phase's layout)."""
         from wsim.pbd.contact import advance_together
 
         advance_together(bodies, t0, t1, graphs)
