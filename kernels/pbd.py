@@ -279,34 +279,6 @@ def moments(
 
 
 @wp.kernel
-def velocity_sums(v: wp.array(dtype=wp.vec3), inv_mass: wp.array(dtype=float), sums: wp.array(dtype=wp.float64)):
-    """sums[0:3] += sum_i m_i v_i and sums[3] += sum_i m_i over the free particles (w_i > 0): the
-    body's mean velocity (``mean_velocity_shift``). Block sums, one atomic a block and slot:
-    launch with dim rounded up to a multiple of MOMENT_BLOCK and block_dim = MOMENT_BLOCK;
-    ``sums`` zeroed before."""
-    i = wp.tid()
-    m = wp.float64(0.0)
-    u = wp.vec3d()
-    if i < v.shape[0]:
-        if inv_mass[i] > 0.0:
-            m = wp.float64(1.0) / wp.float64(inv_mass[i])
-            u = wp.vec3d(v[i])
-    for k in range(3):
-        _block_add(sums, m * u[k], k)
-    _block_add(sums, m, 3)
-
-
-@wp.kernel
-def mean_velocity_shift(sums: wp.array(dtype=wp.float64), v_mean: wp.array(dtype=wp.vec3)):
-    """v_mean[0] = v_mean[1], v_mean[1] = sum m v / sum m (``velocity_sums``): the body's mean
-    velocity at the last substep's start and at this one's (one thread)."""
-    v_mean[0] = v_mean[1]
-    m = sums[3]
-    if m > wp.float64(0.0):
-        v_mean[1] = wp.vec3(float(sums[0] / m), float(sums[1] / m), float(sums[2] / m))
-
-
-@wp.kernel
 def moments_serial(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),

@@ -176,9 +176,7 @@ def body_contact(
     mesh: wp.uint64,
     dx_b: wp.array(dtype=wp.vec3),
     dxc_b: wp.array(dtype=wp.vec3),
-    v_b: wp.array(dtype=wp.vec3),
-    v_mean_b: wp.array(dtype=wp.vec3),
-    h: float,
+    x_prev_b: wp.array(dtype=wp.vec3),
     inv_mass_b: wp.array(dtype=float),
     margin: float,
     max_dist: float,
@@ -192,18 +190,9 @@ def body_contact(
     deformable bodies). With the inverse masses w_p and w_k and W = w_p + sum_k b_k^2 w_k, a violated
     constraint moves p by w_p lambda n and q_k by -b_k w_k lambda n, lambda = -C / W: equal and
     opposite momenta, and the arm p - s along n (no torque error). Coulomb friction as against a
-    collider, on the slip of p over the substep relative to the surface point's motion h v_s,
-    divided between the bodies the same way: v_s = sum_k b_k v_b[k] + (v_mean_b[1] - v_mean_b[0]),
-    B's surface velocities before this substep's gravity (its last substep's; a handle's for
-    handle-driven particles) plus the change of B's mean velocity over its last substep (B's
-    acceleration as a whole: zero for a body the ground holds up, g sin(theta) for a slab sliding
-    down a frictionless incline). Not B's displacement so far (s - s_prev): in mid-solve that
-    holds B's half-done corrections, which p copied only in the iterations where it overlapped,
-    so a cube resting on a PBD box walked 0.8-1.8 mm/s; nor B's velocity after gravity (a box on
-    a slab the ground holds up, tilted 20 degrees, crept downhill at h g sin(theta)).
-
-    One thread per particle of A; B's particles take atomic adds (several of A's particles may
-    press on one triangle of B). ``closed``: B's inside test (``wsim.mesh.inside_test``: ray
+    collider, on the slip of p relative to s over the substep, divided between the bodies the same
+    way. One thread per particle of A; B's particles take atomic adds (several of A's particles
+    may press on one triangle of B). ``closed``: B's inside test (``wsim.mesh.inside_test``: ray
     parity for one watertight piece, else the winding number)."""
     i = wp.tid()
     w_p = inv_mass[i]
@@ -217,9 +206,9 @@ def body_contact(
         w += b[k] * b[k] * inv_mass_b[tri[k]]
     if w <= 0.0:
         return
-    # the slip of p over the substep, after the normal correction, relative to the surface point
-    v_s = b[0] * v_b[tri[0]] + b[1] * v_b[tri[1]] + b[2] * v_b[tri[2]] + (v_mean_b[1] - v_mean_b[0])
-    rel = (p + n * depth - x_prev[i]) - h * v_s
+    # the slip of p relative to the surface point over the substep, after the normal correction
+    s_prev = b[0] * x_prev_b[tri[0]] + b[1] * x_prev_b[tri[1]] + b[2] * x_prev_b[tri[2]]
+    rel = (p + n * depth - x_prev[i]) - (s - s_prev)
     c = n * depth + friction_correction(rel, n, depth, mu)  # the change of p - s that is wanted
     dp = c * (w_p / w)
     dx[i] = dx[i] + dp

@@ -851,8 +851,6 @@ class PbdBody(Body):
         m = self.model
         n = m.n_particles
         k = len(self._handle_idx)
-        if self._contact_mesh is not None:  # what other PBD bodies' friction takes for this surface's motion
-            self._contact_velocities()
         wp.launch(
             kp.predict_positions,
             dim=n,
@@ -872,17 +870,6 @@ class PbdBody(Body):
         self._lam.zero_()
         if m.volume is not None:
             self._vol_buf.zero_()
-
-    def _contact_velocities(self) -> None:
-        """At a substep's start, before gravity: the surface's velocities (``_v_start``) and the
-        body's mean velocity now and at the last substep's start (``_v_mean``), from which other
-        PBD bodies' friction extrapolates this surface's motion over the substep
-        (``kernels.pbd_contact.body_contact``)."""
-        wp.copy(self._v_start, self.v, count=self.model.n_surface)
-        self._v_sums.zero_()
-        wp.launch(kp.velocity_sums, dim=self._moment_blocks(), inputs=[self.v, self.inv_mass, self._v_sums],
-                  block_dim=kp.MOMENT_BLOCK)
-        wp.launch(kp.mean_velocity_shift, dim=1, inputs=[self._v_sums, self._v_mean])
 
     def _moment_blocks(self) -> int:
         return -(-self.model.n_particles // kp.MOMENT_BLOCK) * kp.MOMENT_BLOCK

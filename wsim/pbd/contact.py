@@ -5,8 +5,7 @@ the shortest h): each substep predicts every body, then each constraint iteratio
 body's own constraints and colliders and, for every pair of bodies whose frame-swept boxes
 overlap, projects the surface particles of each body out of the other's current surface
 (``wsim.kernels.pbd_contact.body_contact``: point-triangle constraints with both bodies' inverse
-masses, so the impulses are equal and opposite, and Coulomb friction on the slip relative to the
-other surface moving at its velocity of the substep's start). A body's surface is a Warp
+masses, so the impulses are equal and opposite, and Coulomb friction). A body's surface is a Warp
 mesh built from its positions once per frame and refit before each use. Contact corrections go
 to ``dxc`` like collider contact, so ``conserve_angular_momentum`` keeps them as external.
 
@@ -107,21 +106,9 @@ def _build_mesh(body: PbdBody) -> None:
     wp.copy(body._contact_points, body.x, count=n)
     body._contact_mesh = wp.Mesh(points=body._contact_points, indices=body._contact_indices,
                                  support_winding_number=body._contact_test == 1)
-    if getattr(body, "_v_start", None) is None:  # its velocities at each substep's start (_contact_velocities)
-        body._v_start = wp.zeros(n, dtype=wp.vec3, device=body._device)
-        body._v_sums = wp.zeros(4, dtype=wp.float64, device=body._device)
-        body._v_mean = wp.zeros(2, dtype=wp.vec3, device=body._device)
     x = body.x.numpy()[:n]
     # how far from its surface a query may look: a particle deep inside is still found
     body._contact_reach = float(np.linalg.norm(x.max(axis=0) - x.min(axis=0)))
-
-
-def _start_mean_velocities(bodies: Sequence[PbdBody]) -> None:
-    """Bodies that come into contact: their mean velocity at "the last substep's start" taken as
-    now (no extrapolation in their first substep; its history is stale or missing)."""
-    for b in bodies:
-        b._contact_velocities()
-        b._contact_velocities()
 
 
 def _refit(body: PbdBody) -> None:
@@ -130,13 +117,13 @@ def _refit(body: PbdBody) -> None:
     body._contact_mesh.refit()
 
 
-def _project(a: PbdBody, b: PbdBody, mu: float, h: float) -> None:
+def _project(a: PbdBody, b: PbdBody, mu: float) -> None:
     """a's surface particles out of b's surface (b's mesh refit to its current positions)."""
     _refit(b)
     reach = b._contact_reach + max(a.contact_margin, b.contact_margin)
     wp.launch(kc.body_contact, dim=a.model.n_surface, device=a._device,
               inputs=[a.x_pred, a.dx, a.dxc, a.x_prev, a.inv_mass, b._contact_mesh.id, b.dx, b.dxc,
-                      b._v_start, b._v_mean, h, b.inv_mass, max(a.contact_margin, b.contact_margin), reach, mu, b._contact_test])
+                      b.x_prev, b.inv_mass, max(a.contact_margin, b.contact_margin), reach, mu, b._contact_test])
 
 
 def _lockstep_frame(group: Sequence[PbdBody], pairs: Sequence[tuple[PbdBody, PbdBody]], mus: Sequence[float],
@@ -150,8 +137,8 @@ def _lockstep_frame(group: Sequence[PbdBody], pairs: Sequence[tuple[PbdBody, Pbd
                 if it < b.iterations:
                     b._substep_iteration(s, it, h)
             for (a, b), mu in zip(pairs, mus):
-                _project(a, b, mu, h)
-                _project(b, a, mu, h)
+                _project(a, b, mu)
+                _project(b, a, mu)
         for b in group:
             b._substep_end(h)
 
@@ -189,7 +176,6 @@ def advance_together(bodies: Sequence[PbdBody], t0: float, t1: float, graphs: di
            tuple((ms.key, ms.mesh.id) for b in group for ms in b._moving))  # other methods' surfaces too
     use_graph = graphs is not None and device.is_cuda and all(b.use_graph for b in group)
     with wp.ScopedDevice(device):
-        fresh = [b for b in group if b._contact_mesh is None]  # not touching last frame
         for b in group:
             if b._layout != (substeps, h):
                 b._prepare_layout(substeps, h)
@@ -198,12 +184,10 @@ def advance_together(bodies: Sequence[PbdBody], t0: float, t1: float, graphs: di
         if recorded is not None and recorded[0] == key:
             for b, mesh in zip(group, recorded[2]):
                 b._contact_mesh = mesh  # the meshes the graph queries (their ids are baked in)
-            _start_mean_velocities(fresh)
             wp.capture_launch(recorded[1])
             return
         for b in group:
             _build_mesh(b)
-        _start_mean_velocities(fresh)
         if not use_graph:
             _lockstep_frame(group, pairs, mus, substeps, h)
             return
