@@ -218,13 +218,13 @@ def test_broad_phase_sweep_gives_the_all_pairs_test_pairs_in_order():
             lo[:, 0] = np.round(lo[:, 0], 1)  # ties along the sweep axis
         hi = lo + rng.random((n, 3)) * 0.4
         v_max = rng.random(n) * rng.choice([0.0, 2.0])
-        bodies = [SimpleNamespace(_gravity_norm=9.81 * (trial % 3 > 0), contact_margin=0.01 * (k % 2), _batch=None)
+        bodies = [SimpleNamespace(_gravity=(0.0, -9.81 * (trial % 3 > 0), 0.0), contact_margin=0.01 * (k % 2), _batch=None)
                   for k in range(n)]
         layout = contact._BroadPhase(bodies)
         layout.bounds = lambda _bodies, lo=lo, hi=hi, v=v_max: (lo.copy(), hi.copy(), v.copy())
         at = {id(b): k for k, b in enumerate(bodies)}
         got = [(at[id(a)], at[id(b)]) for a, b in contact.candidate_pairs(bodies, dt, {"broad_phase": layout})]
-        g = np.array([b._gravity_norm for b in bodies])
+        g = np.array([np.linalg.norm(b._gravity) for b in bodies])
         grow = (v_max * dt + 0.5 * g * dt**2 + np.array([b.contact_margin for b in bodies]))[:, None]
         a_lo, a_hi = lo - grow, hi + grow
         overlap = np.all(a_hi[:, None, :] >= a_lo[None, :, :], axis=2) & np.all(a_hi[None, :, :] >= a_lo[:, None, :], axis=2)

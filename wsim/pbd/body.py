@@ -501,7 +501,6 @@ class PbdBody(Body):
         self._device = device
         self._up = np.asarray(up, dtype=np.float64)
         self._gravity = wp.vec3(*np.asarray(gravity, dtype=np.float32))
-        self._gravity_norm = float(np.linalg.norm(gravity))  # |g| for the broad phase (wsim.pbd.contact)
         m = self.model
         n = m.n_particles
         mass = m.mass

@@ -40,7 +40,7 @@ class _BroadPhase:
 
     def __init__(self, bodies: Sequence[PbdBody]) -> None:
         self.key = _layout_key(bodies)
-        self.g = np.array([b._gravity_norm for b in bodies])
+        self.g = np.array([np.linalg.norm(np.array(b._gravity, dtype=np.float64)) for b in bodies])
         self.margin = np.array([b.contact_margin for b in bodies])
         by_batch: dict[int, tuple] = {}  # batch id -> (batch, positions in ``bodies``, rows of its reduction)
         self.alone: list[int] = []
