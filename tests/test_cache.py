@@ -81,6 +81,14 @@ def _one_warning(rec: list[warnings.WarningMessage]) -> str:
     return msg
 
 
+def _flip_byte(path: pathlib.Path, offset: int, mask: int) -> None:
+    with open(path, "r+b") as fh:
+        fh.seek(offset)
+        b = fh.read(1)
+        fh.seek(offset)
+        fh.write(bytes([b[0] ^ mask]))
+
+
 # --- round trip ---------------------------------------------------------------------------------
 
 def test_store_load_round_trip_is_bit_identical(tmp_path: pathlib.Path) -> None:
@@ -131,11 +139,7 @@ def test_flipped_data_byte_is_detected_and_rebuilt(tmp_path: pathlib.Path) -> No
         ds = f["H"]
         assert ds.chunks is None and ds.compression is None
         offset = ds.id.get_offset() + 12345  # a byte well inside the 720 kB of H
-    with open(path, "r+b") as fh:
-        fh.seek(offset)
-        b = fh.read(1)
-        fh.seek(offset)
-        fh.write(bytes([b[0] ^ 0x10]))
+    _flip_byte(path, offset, 0x10)
     with warnings.catch_warnings(record=True) as rec:
         warnings.simplefilter("always")
         got = cache.get_or_build(KIND, arrays=_inputs()[0], params=_inputs()[1], version=3,
@@ -147,6 +151,45 @@ def test_flipped_data_byte_is_detected_and_rebuilt(tmp_path: pathlib.Path) -> No
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         _assert_identical(cache.load(KIND, _key()), _operator())  # rewritten, loads cleanly
+
+
+def test_datasets_move_in_pieces_and_a_flip_in_any_piece_is_caught(tmp_path: pathlib.Path,
+                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """Datasets larger than a piece are written and read by threads piece by piece, a Fortran-
+    ordered array comes back with its values, and a flipped byte in a late piece fails the
+    checksum like one in the first."""
+    monkeypatch.setattr(wc, "CHUNK_BYTES", 4096)  # H's 720 kB: 176 pieces
+    cache = OperatorCache(tmp_path)
+    op = {**_operator(), "lu": np.asfortranarray(np.random.default_rng(3).standard_normal((40, 30)))}
+    path = cache.store(KIND, "ab" * 32, op)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = cache.load(KIND, "ab" * 32)
+    assert set(got) == set(op)
+    for name, want in op.items():
+        assert got[name].dtype == want.dtype and np.array_equal(got[name], want), name
+    with h5py.File(path, "r") as f:
+        offset = f["H"].id.get_offset() + f["H"].id.get_storage_size() - 100  # the last piece
+    _flip_byte(path, offset, 0x01)
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        assert cache.load(KIND, "ab" * 32) is None
+    assert "'H'" in _one_warning(rec)
+
+
+@pytest.mark.parametrize("write_raw", [True, False])
+def test_piecewise_and_whole_dataset_io_read_each_others_files(tmp_path: pathlib.Path,
+                                                             monkeypatch: pytest.MonkeyPatch,
+                                                             write_raw: bool) -> None:
+    """Where pwrite/preadv are missing (Windows) h5py moves every dataset whole: the same file
+    format and checksums, so a cache folder shared between the two loads either way."""
+    cache = OperatorCache(tmp_path)
+    monkeypatch.setattr(wc, "_RAW_IO", write_raw)
+    cache.store(KIND, "ab" * 32, _operator())
+    monkeypatch.setattr(wc, "_RAW_IO", not write_raw)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _assert_identical(cache.load(KIND, "ab" * 32), _operator())
 
 
 @pytest.mark.parametrize("damage", ["truncate", "garbage", "empty"])
@@ -370,3 +413,123 @@ def test_read_only_directory(tmp_path: pathlib.Path) -> None:
         assert _files(ro) == []
     finally:
         ro.chmod(0o755)
+
+
+# --- review findings (parallel I/O) -------------------------------------------------------------
+
+def test_a_flipped_byte_in_a_dataset_name_is_caught(tmp_path: pathlib.Path) -> None:
+    """HDF5 keeps names apart from the data: a renamed dataset must fail the load, not hand the
+    caller a dict without the key it needs."""
+    cache = OperatorCache(tmp_path)
+    path = cache.store("k", "ab" * 32, {"Hq7zname": np.arange(10.0), "other": np.ones(3)})
+    raw = bytearray(path.read_bytes())
+    i = raw.index(b"Hq7zname")
+    raw[i] ^= 0x01  # 'H' -> 'I'
+    path.write_bytes(bytes(raw))
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        assert cache.load("k", "ab" * 32) is None
+    assert "renamed" in _one_warning(rec) or "sha256" in _one_warning(rec)
+
+
+def test_an_entry_replaced_by_a_concurrent_writer_mid_load_still_loads(tmp_path: pathlib.Path,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A concurrent writer of the same key renames its valid file, laid out differently, onto the
+    entry between the load's h5py pass and its piecewise reads: the reader keeps reading the file
+    it opened and loads cleanly."""
+    if not wc._RAW_IO:
+        pytest.skip("piecewise reads need pwrite/preadv")
+    op = {"H": np.arange(1000.0)}
+    cache = OperatorCache(tmp_path / "a")
+    path = cache.store("k", "ab" * 32, op, meta={"m": "x"})
+    other = OperatorCache(tmp_path / "b").store("k", "ab" * 32, op, meta={"m": "x" * 5000})  # other offsets
+    real = wc._move_pieces
+
+    def racing(fd: int, arrays: Any, offsets: Any, move: Any) -> Any:
+        if move is wc._read_piece and other is not None and other.exists():
+            os.replace(other, path)
+        return real(fd, arrays, offsets, move)
+
+    monkeypatch.setattr(wc, "_move_pieces", racing)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = cache.load("k", "ab" * 32)
+    assert got is not None and np.array_equal(got["H"], op["H"])
+    assert not other.exists()  # the rename did happen mid-load
+
+
+@pytest.mark.skipif(np.dtype(np.longdouble).itemsize == 8, reason="long double is double here")
+def test_long_double_round_trips(tmp_path: pathlib.Path) -> None:
+    cache = OperatorCache(tmp_path)
+    a = np.linspace(0, 1, 7).astype(np.longdouble)
+    cache.store("k", "ab" * 32, {"x": a})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = cache.load("k", "ab" * 32)
+    assert got["x"].dtype == a.dtype and np.array_equal(got["x"], a)
+
+
+def test_a_failed_piece_write_leaves_no_temp_file_and_the_old_entry(tmp_path: pathlib.Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    if not wc._RAW_IO:
+        pytest.skip("piecewise writes need pwrite/preadv")
+    monkeypatch.setattr(wc, "CHUNK_BYTES", 4096)
+    cache = OperatorCache(tmp_path)
+    cache.store("k", "ab" * 32, {"H": np.arange(100_000.0)})
+    real, calls = os.pwrite, []
+
+    def full_disk(fd: int, data: Any, at: int) -> int:
+        calls.append(at)
+        if len(calls) == 40:
+            raise OSError(28, "No space left on device")
+        return real(fd, data, at)
+
+    monkeypatch.setattr(os, "pwrite", full_disk)
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        assert cache.store("k", "ab" * 32, {"H": -np.arange(100_000.0)}) is None
+    monkeypatch.setattr(os, "pwrite", real)
+    assert "No space left" in _one_warning(rec)
+    assert _files(tmp_path) == [cache.path_for("k", "ab" * 32).name]
+    assert np.array_equal(cache.load("k", "ab" * 32)["H"], np.arange(100_000.0))
+
+
+@pytest.mark.parametrize("target", ["scalar", "bools", "sha256 attribute"])
+def test_flips_outside_the_piecewise_datasets_are_caught(tmp_path: pathlib.Path, target: str) -> None:
+    cache = OperatorCache(tmp_path)
+    op = {"H": np.arange(50.0), "scalar": np.array(1234.5678), "bools": np.array([True, False] * 8)}
+    path = cache.store("k", "ab" * 32, op)
+    with h5py.File(path, "r") as f:
+        if target == "sha256 attribute":
+            needle = f["H"].attrs["sha256"].encode()
+        else:
+            needle = np.ascontiguousarray(f[target][()]).tobytes()
+    raw = bytearray(path.read_bytes())
+    i = raw.index(needle)
+    raw[i + len(needle) // 2] ^= 0x01
+    path.write_bytes(bytes(raw))
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        assert cache.load("k", "ab" * 32) is None
+    _one_warning(rec)
+
+
+def test_fortran_ordered_arrays_are_not_all_copied_at_once(tmp_path: pathlib.Path,
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """scipy's solves give Fortran-ordered H0_inv and H0_inv_Gp: the store holds a C-ordered copy
+    of one such dataset at a time (2 x 7.3 GB at N = 10k, float64)."""
+    import tracemalloc
+
+    monkeypatch.setattr(wc, "CHUNK_BYTES", 1 << 20)
+    rng = np.random.default_rng(0)
+    op = {n: np.asfortranarray(rng.standard_normal((1024, 1024))) for n in ("H0_inv", "H0_inv_Gp", "X")}  # 8 MB each
+    cache = OperatorCache(tmp_path)
+    tracemalloc.start()
+    try:
+        cache.store("k", "ab" * 32, op)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 1.5 * (8 << 20), f"{peak / 2**20:.1f} MiB"
+    got = cache.load("k", "ab" * 32)
+    assert all(np.array_equal(got[n], op[n]) for n in op)

@@ -11,6 +11,10 @@ that none touches: the contact detection's cost between them is in the time). On
 case, each after ``--warmup`` steps and over ``--steps`` steps:
 
 * ``one``: a single body;
+* ``one_host_path``: the single body with ``device_step=False``: its UNCNST stages (history,
+  loads, solve) are timed on the host as a set's are, the like-for-like baseline of the issue's
+  "≤ 4× one instance per unconstrained step" (the device path runs them inside its replayed
+  step, where they are not split out);
 * ``set``: K bodies stepping as one instance set (``wsim.bem.instances``: each matrix read once a
   step for all K);
 * ``separate``: the same K bodies with the sets turned off (each body its own passes), the
@@ -19,7 +23,8 @@ case, each after ``--warmup`` steps and over ``--steps`` steps:
 Fields: seconds per step (the whole World step, device synchronized), per-body UNCNST seconds
 (history + loads + solve, ``BemBody.timings``, summed over bodies), the ratio to ``one``, the
 device memory high-water mark, and for ``set`` the largest difference of any surface point from
-``separate`` at the end (the same trajectories to round-off).
+``separate`` at the end (the same trajectories to round-off) and ``uncnst_ratio_to_one``, its
+UNCNST seconds over ``one_host_path``'s.
 """
 
 from __future__ import annotations
@@ -66,13 +71,13 @@ def main() -> None:
         p[cube.vertices[:, 0] > 0.15, 0] = -1e3 * np.sin(np.pi * min(t, 0.1) / 0.1)
         return p
 
-    def run(k: int, sets: bool) -> tuple[dict, list[np.ndarray]]:
+    def run(k: int, sets: bool, device_step: bool = True) -> tuple[dict, list[np.ndarray]]:
         world = wsim.World(fps=1.0 / dt, device=dev, gravity=(0.0, -9.81, 0.0), body_contact=args.contact)
         bodies = []
         for i in range(k):
             b = world.add(wsim.BemBody(cube, jelly, dt, operators=ops, name=f"cube_{i:02d}",
                                        position=(1.0 * (i % 5), 0.0, 1.0 * (i // 5)),
-                                       angular_velocity=(0.3 * i, 1.0, 0.0)))
+                                       angular_velocity=(0.3 * i, 1.0, 0.0), device_step=device_step))
             if i == 0:
                 b.add_traction(pulse)
             bodies.append(b)
@@ -100,6 +105,8 @@ def main() -> None:
 
     one, _ = run(1, True)
     print(json.dumps({"case": "one", **one}), flush=True)
+    one_host, _ = run(1, True, device_step=False)
+    print(json.dumps({"case": "one_host_path", **one_host}), flush=True)
     sep, x_sep = run(args.instances, False)
     print(json.dumps({"case": "separate", **sep, "ratio_to_one": round(sep["seconds_per_step"] / one["seconds_per_step"], 2)}),
           flush=True)
@@ -108,6 +115,7 @@ def main() -> None:
     print(json.dumps({"case": "set", **together,
                       "ratio_to_one": round(together["seconds_per_step"] / one["seconds_per_step"], 2),
                       "speedup_over_separate": round(sep["seconds_per_step"] / together["seconds_per_step"], 2),
+                      "uncnst_ratio_to_one": round(together["uncnst_seconds_per_step"] / one_host["uncnst_seconds_per_step"], 2),
                       "max_point_difference_m": diff}), flush=True)
 
 

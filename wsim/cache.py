@@ -8,13 +8,21 @@ Design:
   ``FORMAT_VERSION``. A key can therefore never point at an operator built from other inputs,
   and no invalidation logic is needed: changed inputs simply give another file name.
 * **Per-dataset checksums.** The key says what *should* be in a file, not that the bytes on
-  disk are still intact. Every dataset stores a SHA-256 of its dtype, shape and data, verified
-  on every load, so bit rot, a half-copied file or a hand-edited one is recomputed instead of
-  silently feeding a wrong matrix to the solver.
-* **Atomic writes.** A file is written to a temporary name in the cache folder, fsynced, then
-  ``os.replace``-d onto its final name. Readers (other processes, a later run after a crash or
-  a full disk) see either no file or a complete one; concurrent writers of the same key both
-  write complete files and the last rename wins.
+  disk are still intact. Every dataset stores a SHA-256 of its dtype, shape and the SHA-256s of
+  its ``CHUNK_BYTES`` pieces, verified on every load, so bit rot, a half-copied file or a
+  hand-edited one is recomputed instead of silently feeding a wrong matrix to the solver.
+* **Parallel I/O.** A dataset's contiguous storage is laid out by h5py, then its pieces are
+  written (and on a load read) by threads at their file offsets with ``pwrite`` / ``preadv``,
+  each piece hashed by the thread that moves it: one h5py call per dataset runs on one core.
+  Where those calls are missing (Windows) h5py moves the datasets whole; the files and
+  checksums are the same either way.
+* **Atomic writes.** A file is written to a temporary name in the cache folder, then
+  ``os.replace``-d onto its final name. Readers (other processes, a later run after a full disk
+  or a killed writer) see either no file or a complete one; concurrent writers of the same key
+  both write complete files and the last rename wins. The file is not fsynced: a power loss
+  before the kernel writes it back can leave a renamed but torn file, which the checksums below
+  catch on its next load (it is recomputed), and forcing a BEM set to the disk costs more than
+  its build (the bunny's 7.9 GB: 8.2-10.5 s of store on an H100 host, issue 21).
 * A cache is an optimisation: a bad file is reported in one warning line and recomputed, and an
   unwritable cache folder only costs the recomputation. Neither ever stops a simulation.
 * **Size cap, least recently used eviction.** BEM operator sets are hundreds of MB per body, so
@@ -59,7 +67,7 @@ from typing import Any, NamedTuple
 import h5py
 import numpy as np
 
-FORMAT_VERSION: int = 1
+FORMAT_VERSION: int = 2
 """Version of the cache file layout itself (attributes, checksum definition, key recipe)."""
 
 _KIND_RE = re.compile(r"[A-Za-z0-9_-]+")
@@ -110,18 +118,104 @@ def _array_digest(h: Any, a: np.ndarray) -> None:
     _feed(h, a.dtype.str, json.dumps(list(a.shape)), data)
 
 
-def _parallel_sha256(arrays: Mapping[str, np.ndarray]) -> dict[str, str]:
-    """Per-dataset checksums in threads (hashlib releases the GIL on large buffers)."""
-    if len(arrays) < 2:
-        return {name: _dataset_sha256(a) for name, a in arrays.items()}
-    with ThreadPoolExecutor(max_workers=min(len(arrays), os.cpu_count() or 1)) as pool:
-        return dict(zip(arrays, pool.map(_dataset_sha256, arrays.values())))
+CHUNK_BYTES: int = 64 << 20
+"""Bytes per piece of a dataset: the unit of the parallel writes and reads and a leaf of its
+checksum."""
+
+# pwrite / preadv release the GIL, so threads move a dataset's pieces at once (POSIX; elsewhere
+# h5py writes and reads every dataset whole)
+_RAW_IO: bool = hasattr(os, "pwrite") and hasattr(os, "preadv")
 
 
-def _dataset_sha256(a: np.ndarray) -> str:
+def _workers() -> int:
+    return max(1, min(16, os.cpu_count() or 1))
+
+
+def _pieces(nbytes: int) -> list[tuple[int, int]]:
+    return [(s, min(s + CHUNK_BYTES, nbytes)) for s in range(0, nbytes, CHUNK_BYTES)] or [(0, 0)]
+
+
+def _byte_view(a: np.ndarray) -> memoryview:
+    """The array's bytes in C order (a non-contiguous array is copied; any dtype, byte order)."""
+    return memoryview(np.ascontiguousarray(a).reshape(-1).view(np.uint8))
+
+
+def _hash_piece(piece: memoryview) -> bytes:
+    return hashlib.sha256(piece).digest()
+
+
+def _write_piece(fd: int, piece: memoryview, at: int) -> bytes:
+    done = 0
+    while done < len(piece):
+        done += os.pwrite(fd, piece[done:], at + done)
+    return _hash_piece(piece)
+
+
+def _read_piece(fd: int, piece: memoryview, at: int) -> bytes:
+    done = 0
+    while done < len(piece):
+        got = os.preadv(fd, [piece[done:]], at + done)
+        if got <= 0:
+            raise EOFError(f"file ends inside a dataset (byte {at + done})")
+        done += got
+    return _hash_piece(piece)
+
+
+def _dataset_digest(name: str, dtype: np.dtype, shape: tuple[int, ...], leaves: list[bytes]) -> str:
+    """A dataset's checksum: SHA-256 over its name, dtype, shape and the SHA-256 of each
+    ``CHUNK_BYTES`` piece of its C-ordered bytes (pieces hash in parallel; one flipped bit in any
+    piece changes it all the same; a flipped bit in the name, which HDF5 keeps apart from the
+    data, too)."""
     h = hashlib.sha256()
-    _array_digest(h, a)
+    _feed(h, name, dtype.str, json.dumps(list(shape)))
+    for leaf in leaves:
+        h.update(leaf)
     return h.hexdigest()
+
+
+def _raw(dtype: np.dtype, shape: tuple[int, ...]) -> bool:
+    """Whether a dataset moves as raw bytes at its file offset: plain numbers, not empty, not 0-d
+    (h5py stores these with their bytes unchanged, contiguous)."""
+    return (_RAW_IO and dtype.kind in "fiu" and dtype.itemsize <= 8 and len(shape) >= 1
+            and int(np.prod(shape)) > 0)
+
+
+def _early_contiguous() -> Any:
+    """Dataset creation: contiguous storage allocated at creation (so its file offset is known
+    before any data is written) and never filled (every byte is written after)."""
+    dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+    dcpl.set_layout(h5py.h5d.CONTIGUOUS)
+    dcpl.set_alloc_time(h5py.h5d.ALLOC_TIME_EARLY)
+    dcpl.set_fill_time(h5py.h5d.FILL_TIME_NEVER)
+    return dcpl
+
+
+def _move_pieces(fd: int, arrays: Mapping[str, np.ndarray], offsets: Mapping[str, int],
+                 move: Callable[..., bytes]) -> dict[str, list[bytes]]:
+    """Each dataset's pieces moved (written from or read into ``arrays`` at ``offsets`` in the
+    open file ``fd``) and hashed in threads; the datasets without an offset only hashed. Returns
+    the pieces' digests per dataset. A non-contiguous array is copied to C order one at a time
+    (scipy's solves give Fortran-ordered products: 7.3 GB each at N = 10k in float64). A failed
+    piece cancels the pieces not started."""
+    pool = ThreadPoolExecutor(max_workers=_workers())
+
+    def submit(name: str, view: memoryview) -> list[Any]:
+        return [pool.submit(move, fd, view[s:e], offsets[name] + s) if name in offsets
+                else pool.submit(_hash_piece, view[s:e]) for s, e in _pieces(len(view))]
+
+    try:
+        futures = {name: submit(name, _byte_view(a)) for name, a in arrays.items() if a.flags.c_contiguous}
+        leaves: dict[str, list[bytes]] = {}
+        for name, a in arrays.items():
+            if not a.flags.c_contiguous:
+                leaves[name] = [f.result() for f in submit(name, _byte_view(a))]
+        leaves.update({name: [f.result() for f in fs] for name, fs in futures.items()})
+        return leaves
+    except BaseException:
+        pool.shutdown(wait=True, cancel_futures=True)
+        raise
+    finally:
+        pool.shutdown(wait=True)
 
 
 def _canonical(value: Any, where: str) -> Any:
@@ -206,6 +300,9 @@ class OperatorCache:
         if not path.exists():
             return None
         out: dict[str, np.ndarray] = {}
+        stored: dict[str, Any] = {}  # each dataset's recorded checksum
+        offsets: dict[str, int] = {}  # the datasets read as raw pieces: their file offsets
+        fd = -1
         reason: str | None = None
         try:
             with _h5open(path, "r") as f:
@@ -217,21 +314,32 @@ class OperatorCache:
                     reason = f"stale (kind {a.get('kind')!r}, expected {kind!r})"
                 elif a.get("key") != key:
                     reason = "stale (stored key differs)"
+                elif sorted(json.loads(a.get("datasets", "null")) or []) != sorted(f.keys()):
+                    reason = "datasets missing or renamed (corrupt)"
                 else:
-                    stored: dict[str, Any] = {}
                     for name, ds in f.items():
                         if not isinstance(ds, h5py.Dataset):
                             reason = f"unexpected group {name!r}"
                             break
-                        out[name] = np.asarray(ds[()])  # np.asarray: 0-d datasets read as scalars
                         stored[name] = ds.attrs.get("sha256")
-                    if reason is None:
-                        digests = _parallel_sha256(out)
-                        bad = [name for name in out if stored[name] != digests[name]]
-                        if bad:
-                            reason = f"dataset {bad[0]!r} failed its sha256 check (corrupt)"
+                        offset = ds.id.get_offset() if _raw(ds.dtype, ds.shape) else None
+                        if offset is not None and ds.chunks is None and ds.compression is None:
+                            out[name] = np.empty(ds.shape, ds.dtype)  # read below, in pieces
+                            offsets[name] = offset
+                        else:
+                            out[name] = np.asarray(ds[()])  # np.asarray: 0-d datasets read as scalars
+                    if offsets:  # the file h5py read, not whatever a concurrent writer renamed onto its name since
+                        fd = os.dup(f.id.get_vfd_handle())
+            if reason is None:
+                leaves = _move_pieces(fd, out, offsets, _read_piece)
+                bad = [n for n, a in out.items() if stored[n] != _dataset_digest(n, a.dtype, a.shape, leaves[n])]
+                if bad:
+                    reason = f"dataset {bad[0]!r} failed its sha256 check (corrupt)"
         except Exception as exc:  # any unreadable file is just a cache miss
             reason = f"unreadable ({type(exc).__name__}: {exc})"
+        finally:
+            if fd >= 0:
+                os.close(fd)
         if reason is not None:
             _warn(path, reason, "recomputing")
             return None
@@ -263,23 +371,32 @@ class OperatorCache:
                 f.attrs["wsim_version"] = _wsim_version()
                 f.attrs["created"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
                 f.attrs["meta"] = json.dumps(dict(meta or {}), sort_keys=True, default=str)
-                # the checksums are computed in threads while the datasets are written (hashlib
-                # releases the GIL): a 7.9 GB operator set took 9.1 s to store on an H100 host
-                # with the hashing first, one dataset of 2.6 GB alone ~1.8 s of SHA-256. An array
-                # that is not C-ordered (the LU factors, Fortran order) is copied by the hash and
-                # by h5py alike: it is hashed after the writes, so that the two copies (7.3 GB
-                # each for a 10k-node body) are never held at once.
-                overlap = [n for n, a in data.items() if a.flags.c_contiguous]
-                with ThreadPoolExecutor(max_workers=max(1, min(len(overlap), os.cpu_count() or 1))) as pool:
-                    digests = {name: pool.submit(_dataset_sha256, data[name]) for name in overlap}
-                    for name, a in data.items():
-                        # Contiguous and uncompressed: dense operators barely compress, and reads
-                        # stay a single memcpy-sized I/O.
+                # The datasets' storage is laid out here and their bytes written after, in
+                # ``CHUNK_BYTES`` pieces by threads at their file offsets, each piece hashed as it
+                # goes: h5py writes one dataset at a time on one thread, and the bunny's 7.9 GB
+                # took 5.5-6.6 s so on an H100 host with the checksums hashed alongside.
+                # Contiguous and uncompressed: dense operators barely compress, and reads stay a
+                # few large I/Os.
+                offsets: dict[str, int] = {}
+                for name, a in data.items():
+                    if _raw(a.dtype, a.shape):
+                        ds = f.create_dataset(name, shape=a.shape, dtype=a.dtype, dcpl=_early_contiguous())
+                        offset = ds.id.get_offset()
+                        if offset is not None:
+                            offsets[name] = offset
+                            continue
+                        ds[...] = a
+                    else:
                         f.create_dataset(name, data=a)
-                    for name in data:
-                        f[name].attrs["sha256"] = digests[name].result() if name in digests else _dataset_sha256(data[name])
-            with open(tmp, "r+b") as fh:  # data must be on disk before the rename publishes it
-                os.fsync(fh.fileno())
+            fd = os.open(tmp, os.O_WRONLY | getattr(os, "O_BINARY", 0))
+            try:
+                leaves = _move_pieces(fd, data, offsets, _write_piece)
+            finally:
+                os.close(fd)
+            with _h5open(tmp, "r+") as f:
+                f.attrs["datasets"] = json.dumps(sorted(data))
+                for name, a in data.items():
+                    f[name].attrs["sha256"] = _dataset_digest(name, a.dtype, a.shape, leaves[name])
             os.chmod(tmp, 0o644)  # mkstemp makes 0600; a shared cache must stay readable
             os.replace(tmp, path)
             tmp = None

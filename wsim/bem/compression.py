@@ -35,7 +35,7 @@ from typing import Any, Sequence
 import numpy as np
 import scipy.sparse as sp
 
-from wsim.bem.operators import fold_frame_terms
+from wsim.bem.factorization import fold_frame_terms
 from wsim.errors import InvalidParameter
 
 ORDERINGS = ("none", "v", "c", "v+c")
@@ -492,7 +492,7 @@ class CompressedHistory:
 
 def folded_G(ops, k: int) -> np.ndarray:
     """G'_k = G_k + D_k A + Q_k C (3N, 3N, G_k's precision; ``CompressedHistory``; k = 0 gives the
-    operators' G'), on a copy of G_k (``operators.fold_frame_terms``)."""
+    operators' G'), on a copy of G_k (``factorization.fold_frame_terms``)."""
     return fold_frame_terms(np.array(ops.G[k]), ops.D[k], ops.Q[k], ops.A, ops.C)
 
 

@@ -19,6 +19,7 @@ factors, D_k, Q_k, A and C stay float64. The set is cached by content hash throu
 
 from __future__ import annotations
 
+import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -45,7 +46,7 @@ from wsim.materials import ElasticMaterial
 from wsim.validate import finite_number, positive_int
 
 #: bump when the stored arrays or their meaning change
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 PRECISIONS = {"float32": np.float32, "float64": np.float64}
 
 
@@ -108,7 +109,7 @@ class BemOperators:
         return {
             "nodes": s.nodes, "faces": s.faces, "vertex": s.vertex,
             "H": self.H, "G": self.G, "D": self.D, "Q": self.Q,
-            "H0_lu": self.H0_lu[0], "H0_piv": self.H0_lu[1], "H0_inv": self.H0_inv, "H0_inv_Gp": self.H0_inv_Gp,
+            "H0_lu_T": self.H0_lu[0].T, "H0_piv": self.H0_lu[1], "H0_inv": self.H0_inv, "H0_inv_Gp": self.H0_inv_Gp,
             "Gp": self.Gp, "A": self.A, "C": self.C, "com": self.com, "inertia": self.inertia,
             "scalars": np.array([self.mass, self.volume, self.r_max, self.dt, self.n_max], dtype=np.float64),
         }
@@ -119,7 +120,7 @@ def _from_arrays(a: dict[str, np.ndarray], surface: BemSurface, material: Elasti
     mass, volume, r_max, dt, n_max = a["scalars"].tolist()
     return BemOperators(
         surface=surface, material=material, dt=dt, method=method, precision=precision, n_max=int(n_max), r_max=r_max,
-        H=a["H"], G=a["G"], D=a["D"], Q=a["Q"], H0_lu=(a["H0_lu"], a["H0_piv"]), H0_inv=a["H0_inv"],
+        H=a["H"], G=a["G"], D=a["D"], Q=a["Q"], H0_lu=(a["H0_lu_T"].T, a["H0_piv"]), H0_inv=a["H0_inv"],
         H0_inv_Gp=a["H0_inv_Gp"], Gp=a["Gp"], A=a["A"], C=a["C"], mass=mass, com=a["com"], inertia=a["inertia"],
         volume=volume, key=key,
     )
@@ -139,17 +140,6 @@ def surface_diameter(points: np.ndarray) -> float:
     return best
 
 
-def fold_frame_terms(G: np.ndarray, D: np.ndarray, Q: np.ndarray, A: np.ndarray, C: np.ndarray) -> np.ndarray:
-    """G + D A + Q C in G's own buffer (returned): G_k with the frame acceleration its traction
-    causes folded in (Eq. 10: a_ext = A p, alpha_ext = C p). k = 0 gives G'; the compressed sets
-    store G'_k (``compression.folded_G``). In row blocks: the expression's full-size temporaries
-    (875 MB each for the bunny, 7 GB at N = 10088, faulted in fresh) cost more than the sums."""
-    DQ, AC = np.concatenate([D, Q], axis=1), np.concatenate([A, C], axis=0)
-    for r0 in range(0, G.shape[0], 1024):
-        G[r0:r0 + 1024] += DQ[r0:r0 + 1024] @ AC
-    return G
-
-
 def assembly_devices(device: Any = None, devices: Any = None) -> list[wp.Device]:
     """The devices a build spreads its row blocks over: ``devices`` = None (``device`` alone),
     "all" (every CUDA device; the CPU without one) or a list (a device may repeat: its blocks then
@@ -162,6 +152,13 @@ def assembly_devices(device: Any = None, devices: Any = None) -> list[wp.Device]
     if isinstance(devices, str) or not isinstance(devices, (list, tuple)) or not devices:
         raise InvalidParameter(f"devices = {devices!r}: None, 'all' or a non-empty list of devices (e.g. ['cuda:0', 'cuda:1'])")
     return [resolve_device(d) for d in devices]
+
+
+def _fault_in(arrays: list[np.ndarray]) -> None:
+    """Touch one element of every 4 KB page (numpy's scalar fill releases the GIL), so the
+    kernel maps the memory now rather than in the device -> host copies."""
+    for a in arrays:
+        a.reshape(-1)[:: max(1, 4096 // a.itemsize)] = 0
 
 
 def _rows_per_block(device: wp.Device, n: int, n_max: int, memory_limit: int | None) -> int:
@@ -289,6 +286,29 @@ def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: st
     wp_dtype = wp.float32 if dtype == np.float32 else wp.float64
     D = np.zeros((n_max + 1, 3 * n, 3))
     Q = np.zeros_like(D)
+    cols = 3 * n
+    # the float64 H_0, G_0 wait where the factorization runs: on its GPU they never cross to the
+    # host and back (the bunny: 1.75 GB of host buffers, a copy each way and the fold on the
+    # host, ~1.5 s of its build on an H100). Allocated before the row blocks are sized, so the
+    # blocks' share of the free memory leaves them out.
+    backend = factorization_backend(factorization, dev.is_cuda)
+    if backend == "cupy":
+        H0_buf, G0_buf = (wp.empty((cols, cols), dtype=wp.float64, device=dev) for _ in range(2))
+    else:
+        H0_buf, G0_buf = np.empty((cols, cols)), np.empty((cols, cols))
+    # 2-D (Warp's strides are 32 bits: a 3-D stack of 10k-node matrices would overflow them)
+    H_host = np.empty(((n_max + 1) * cols, cols), dtype=dtype)
+    G_host = np.empty_like(H_host)
+    # Host results in pageable memory whose pages a thread faults in while the devices assemble.
+    # Page-locked buffers (cudaHostAlloc) took 1.8-3.6 s to allocate for the bunny's 5.2 GB on H100
+    # hosts, before the assembly could start and holding up the devices' own allocations; faulting
+    # in numpy's (transparent huge pages) took 0.56 s, and the copies into them 0.30 s instead of
+    # 0.10 s (tools/results/bench_bem_precompute_bunny_host_buffers_h100.jsonl). On several GPUs
+    # the pageable copies no longer overlap across the devices (the bunny's: 0.5 s on one).
+    host_buffers = [H_host, G_host] + ([H0_buf, G0_buf] if backend != "cupy" else [])
+    fault_in = threading.Thread(target=_fault_in, args=(host_buffers,), daemon=True)
+    if any(a.device.is_cuda for a in assemblers):
+        fault_in.start()
     # a device named twice shares its memory between its two sets of buffers
     shares = Counter(a.device.alias for a in assemblers)
     rows = max(1, min(_rows_per_block(a.device, n, n_max, memory_limit) // shares[a.device.alias] for a in assemblers))
@@ -300,14 +320,10 @@ def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: st
     n_blocks = -(-n_blocks // k) * k  # rounded up to a multiple of the devices
     rows = -(-n // n_blocks)
     blocks = [(r0, min(rows, n - r0)) for r0 in range(0, n, rows)]
-    cols = 3 * n
-    # host results in page-locked memory on CUDA: device -> host copies at full PCIe/NVLink speed
-    pinned = any(a.device.is_cuda for a in assemblers)
-    # 2-D (Warp's strides are 32 bits: a 3-D stack of 10k-node matrices would overflow them)
-    H_host = wp.empty(((n_max + 1) * cols, cols), dtype=wp_dtype, device="cpu", pinned=pinned)
-    G_host = wp.empty(((n_max + 1) * cols, cols), dtype=wp_dtype, device="cpu", pinned=pinned)
-    H0_host = wp.empty((cols, cols), dtype=wp.float64, device="cpu", pinned=pinned)
-    G0_host = wp.empty((cols, cols), dtype=wp.float64, device="cpu", pinned=pinned)
+    # Warp views of the host buffers, the copies' destinations
+    H_wp, G_wp = (wp.array(a, dtype=wp_dtype, device="cpu", copy=False) for a in (H_host, G_host))
+    H0_wp, G0_wp = (b if backend == "cupy" else wp.array(b, dtype=wp.float64, device="cpu", copy=False)
+                    for b in (H0_buf, G0_buf))
     timings["setup"] = time.perf_counter() - t0
     t_assembly = t_transfer = 0.0
     bar = tqdm(total=len(blocks) * len(s_l), desc="BEM operators", unit="sample", disable=not show_progress(progress))
@@ -343,9 +359,11 @@ def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: st
         for (a, *_), _ in batch:
             wp.synchronize_device(a.device)
         t2 = time.perf_counter()
+        if fault_in.is_alive():
+            fault_in.join()
         for (a, block, acc_H, acc_G, cast), (r0, nr) in batch:
             count = 3 * nr * cols
-            for acc, host, host0 in ((acc_H, H_host, H0_host), (acc_G, G_host, G0_host)):
+            for acc, host, host0 in ((acc_H, H_wp, H0_wp), (acc_G, G_wp, G0_wp)):
                 wp.copy(host0, acc, dest_offset=3 * r0 * cols, src_offset=0, count=count)
                 src = acc
                 if cast is not None:
@@ -357,20 +375,25 @@ def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: st
             wp.synchronize_device(a.device)
         t_transfer += time.perf_counter() - t2
         t_assembly += t2 - t1
-    H, G = (a.numpy().reshape(n_max + 1, cols, cols) for a in (H_host, G_host))
-    H0, G0 = H0_host.numpy(), G0_host.numpy()
+    H, G = (a.reshape(n_max + 1, cols, cols) for a in (H_host, G_host))
     bar.close()
+    # the row blocks' device buffers (the loops' names too): the factorization needs the room
+    del work, batch, block, acc_H, acc_G, acc, src, cast, host, host0
     timings["assembly"] = t_assembly
     timings["transfer"] = t_transfer
     t3 = time.perf_counter()
-    Gp = fold_frame_terms(G0, D[0], Q[0], A, C)  # G' = G_0 + D_0 A + Q_0 C, in G_0's buffer
-    del G0, G0_host  # Gp keeps the buffer (a numpy view holds its Warp array)
-    backend = factorization_backend(factorization, dev.is_cuda)
-    lu, H0_inv, H0_inv_Gp = factorize(H0, Gp, backend, dev.ordinal if dev.is_cuda else 0, dtype)
-    del H0, H0_host
+    # G' = G_0 + D_0 A + Q_0 C is folded in G_0's buffer where it lies; the LU overwrites H_0's
+    # H_0, G_0 handed over with their only references: on the GPU factorize frees each once its
+    # copy is made (the factorization's peak stays ~3.5 (3N)^2 float64, ~26 GB at N = 10088)
+    buffers = [H0_buf, G0_buf]
+    del H_wp, G_wp, H0_wp, G0_wp, H0_buf, G0_buf
+    if dev.is_cuda:
+        wp.synchronize_device(dev)  # the row blocks' freed memory goes back to the driver, for CuPy
+    f = factorize(buffers.pop(0), buffers.pop(0), backend, dev.ordinal if dev.is_cuda else 0, dtype,
+                  frame_terms=(D[0], Q[0], A, C))
     timings["factorization"] = time.perf_counter() - t3
     return BemOperators(
         surface=surface, material=material, dt=dt, method=method, precision=precision, n_max=n_max, r_max=r_max,
-        H=H, G=G, D=D, Q=Q, H0_lu=lu, H0_inv=H0_inv, H0_inv_Gp=H0_inv_Gp, Gp=Gp,
+        H=H, G=G, D=D, Q=Q, H0_lu=f.lu, H0_inv=f.H0_inv, H0_inv_Gp=f.H0_inv_Gp, Gp=f.Gp,
         A=A, C=C, mass=props.mass, com=props.com, inertia=props.inertia, volume=props.volume,
     )
