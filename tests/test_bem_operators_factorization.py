@@ -82,3 +82,15 @@ def test_cupy_takes_the_builds_device_buffers_and_folds_there() -> None:
     assert f.H0_inv.dtype == np.float32 and f.H0_inv_Gp.dtype == np.float32
     np.testing.assert_allclose(f.H0_inv_Gp, ref.H0_inv_Gp, atol=1e-6 * np.abs(ref.H0_inv_Gp).max())
     np.testing.assert_allclose(f.H0_inv, ref.H0_inv, atol=1e-6 * np.abs(ref.H0_inv).max())
+
+
+@pytest.mark.parametrize("backend", ["scipy", "cupy"])
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_a_non_finite_H0_is_refused_by_either_backend(backend: str, bad: float) -> None:
+    """scipy's check_finite, and on the GPU the row-sum check that stands in for it."""
+    if backend == "cupy" and (factorization.cupy_module() is None or not __import__("warp").is_cuda_available()):
+        pytest.skip("CuPy and a CUDA device needed")
+    H0, G0 = _system(50, seed=4)
+    H0[7, 3] = bad
+    with pytest.raises(ValueError, match="infs or NaNs"):
+        factorization.factorize(H0, G0, backend)

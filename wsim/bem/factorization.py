@@ -100,7 +100,11 @@ def factorize(H0: Any, G0: Any, backend: str = "scipy", device_ordinal: int = 0,
     with cp.cuda.Device(device_ordinal):
         a = cp.asarray(H0, dtype=cp.float64)  # a view of a device buffer, an upload of a host one
         del H0  # a caller that handed over its only reference frees the buffer with `a` below
-        if not bool(cp.isfinite(a).all()):
+        # scipy's check_finite: a NaN or inf makes its row's sum non-finite (a finite row summing
+        # past 1.8e308 would be refused too), so one matrix-vector product and 3N numbers on the
+        # host check it. CuPy's all() over the (3N)^2 flags compiled a reduction for that size on
+        # a fresh machine's first build (6.1 s for the bunny, tools/results/cupy_first_use_h100.jsonl)
+        if not np.isfinite((a @ cp.ones(n, dtype=cp.float64)).get()).all():
             raise ValueError("array must not contain infs or NaNs")  # scipy's check_finite message
         lu, piv = cpl.lu_factor(a, overwrite_a=True, check_finite=False)  # on a Fortran-ordered copy of C-ordered `a`
         del a
@@ -115,8 +119,7 @@ def factorize(H0: Any, G0: Any, backend: str = "scipy", device_ordinal: int = 0,
         # with the buffers handed over (N = 10088: ~26 GB)
         g = cp.asfortranarray(g)
         cp.cuda.runtime.deviceSynchronize()
-        eye = cp.zeros((n, n), dtype=cp.float64, order="F")
-        eye[cp.arange(n), cp.arange(n)] = 1.0
+        eye = cp.eye(n, dtype=cp.float64).T  # Fortran-ordered (the identity is its own transpose)
         H0_inv = cpl.lu_solve((lu, piv), eye, overwrite_b=True, check_finite=False).astype(dtype, copy=False).get()
         del eye
         H0_inv_Gp = cpl.lu_solve((lu, piv), g, overwrite_b=True, check_finite=False).astype(dtype, copy=False).get()
