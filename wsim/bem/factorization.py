@@ -81,10 +81,10 @@ def factorize(H0: Any, G0: Any, backend: str = "scipy", device_ordinal: int = 0,
 
     ``H0``, ``G0``: float64 (3N, 3N) host arrays, or for "cupy" also arrays on that GPU with
     ``__cuda_array_interface__`` (the build's Warp buffers): then H_0 and G_0 never cross to the
-    host and back (1.75 GB each way for the bunny, issue 21). G_0's buffer may be overwritten with
-    G' (it is on the host path, and returned as ``Gp``); a caller that passes its only references to device
-    buffers (``factorize(bufs.pop(), ...)``) has them freed as soon as their copies are made.
-    The products are solved in float64 and cast where they are made (on the GPU for CuPy): a
+    host and back (1.75 GB each way for the bunny, issue 21). G_0's buffer may be overwritten
+    with G' (it is on the host path, and returned as ``Gp``); a caller that passes its only
+    references to device buffers (``factorize(bufs.pop(0), bufs.pop(0), ...)``) has them freed
+    as soon as their copies are made. The products are solved in float64 and cast where they are made (on the GPU for CuPy): a
     10k-node body's float64 copies would be 15 GB of host memory more at the build's peak."""
     n = H0.shape[0]
     if backend == "scipy":

@@ -382,9 +382,9 @@ def _build(surface: BemSurface, material: ElasticMaterial, dt: float, method: st
     timings["assembly"] = t_assembly
     timings["transfer"] = t_transfer
     t3 = time.perf_counter()
-    # G' = G_0 + D_0 A + Q_0 C is folded in G_0's buffer where it lies; the LU overwrites H_0's
-    # H_0, G_0 handed over with their only references: on the GPU factorize frees each once its
-    # copy is made (the factorization's peak stays ~3.5 (3N)^2 float64, ~26 GB at N = 10088)
+    # G' = G_0 + D_0 A + Q_0 C is folded where G_0 lies. H_0, G_0 are handed over with their only
+    # references: on the GPU factorize frees each once its Fortran-ordered copy is made (the
+    # factorization's peak stays ~3.5 (3N)^2 float64, ~26 GB at N = 10088)
     buffers = [H0_buf, G0_buf]
     del H_wp, G_wp, H0_wp, G0_wp, H0_buf, G0_buf
     if dev.is_cuda:
