@@ -102,6 +102,7 @@ class BemState:
     frame_is_material: bool = True
 
 
+
 class BemBody(VertexImpulses, Body):
     """An elastic body simulated by convolution-quadrature BEM in a rigid moving frame.
 
@@ -294,6 +295,7 @@ class BemBody(VertexImpulses, Body):
         self._surfaces: Surfaces | None = None
         self._response: PointResponse | None = None
         self._coupling_load = False  # whether add_vertex_impulses' load is registered
+        self._balance: np.ndarray | None = None  # (6,) the coming step's load balance X p
         self.constraint_history: list[wc.SolveRecord] = []  # diagnostics of every constrained step (not state)
         self.unconverged_steps = 0
 
@@ -830,7 +832,7 @@ class BemBody(VertexImpulses, Body):
         """Apply the point forces as tractions and finish the step (``_finish_step``)."""
         u, a_ext, alpha_ext = self._close_constraints(points, forces, kind, record)
         # a step nothing held or touched is a free step: the paper's correction, as without colliders
-        self._finish_step(u, a_ext, alpha_ext, time.perf_counter(), correct=not len(points))
+        self._finish_step(u, a_ext, alpha_ext, time.perf_counter(), free=not len(points))
 
     @staticmethod
     def constraint_end_free(bodies: Sequence[BemBody], points: Sequence[wc.PointRefs]) -> None:
@@ -925,10 +927,6 @@ class BemBody(VertexImpulses, Body):
         if BemBody.steps_on_device([self], self.steps + 1):
             return
         if self.constrained:
-            # On a constrained step the error correction moves u's rigid drift into the frame's pose
-            # (``Correction.drift``), not its acceleration: the paper's da, dalpha moved the points
-            # after the solve (a resting cube slid ~10 um per step) and held 2.5 % of its weight with
-            # a force no collider applied. So the constraints have the last word on the positions.
             wc.solve_group([self], [], self._device, self.constraint_tolerance, self.constraint_iterations, self.steps + 1)
             return
         u, a_ext, alpha_ext = self.unconstrained_solve()
@@ -1064,7 +1062,7 @@ class BemBody(VertexImpulses, Body):
                 p = self._tractions((st.steps + 1) * self.dt) if self._loads else None
                 has_p = p is not None and bool(np.any(p))
                 if has_p:
-                    rs.load(p, np.concatenate([ops.A @ p, ops.C @ p]))
+                    rs.load(p, np.concatenate([ops.A @ p, ops.C @ p, self._so.load_balance @ p]))
                     self._p_live = True  # the traction buffer holds this load (the host path zeroes it)
                 rs.step(st.ring, has_p)
                 if st.steps % 100 == 99:
@@ -1129,9 +1127,14 @@ class BemBody(VertexImpulses, Body):
         stepper.solve(so, self._p_k if self._p_loads is not None else None, self._h_k, self._u_dev, self._scratch)
         wp.copy(self._u_out, self._u_dev, count=n3)
         wp.synchronize_device(self._device)
-        u = self._u_out.numpy()[:n3].astype(np.float64)
+        u = self._balanced(self._u_out.numpy()[:n3].astype(np.float64))
         self._tick("solve", t0)
         return u, a_ext, alpha_ext
+
+    def _balanced(self, u: np.ndarray) -> np.ndarray:
+        """u of the coming step with the loads' balance X p (``correction.load_balance``) in the
+        BEM's frame terms: u + H_0^-1 [D_0 Q_0] X p."""
+        return u if self._balance is None else u + self._so.E @ self._balance
 
     def _step_loads(self) -> tuple[np.ndarray, np.ndarray]:
         """The coming step's tractions p_n into the device vector (zeroed when there are none) and
@@ -1144,11 +1147,14 @@ class BemBody(VertexImpulses, Body):
         has_p = p is not None and bool(np.any(p))
         self._p_loads = p if has_p else None
         ops = so.operators
+        self._balance = None
         if has_p:
             self._loaded_now = True
             self._p_in.numpy()[:n3] = p
             wp.copy(self._p, self._p_in, count=n3)
             self._p_live = True
+            if self.frame_update and self.error_correction:
+                self._balance = so.load_balance @ p
             return ops.A @ p, ops.C @ p
         if self._p_live:
             self._p.zero_()
@@ -1174,42 +1180,41 @@ class BemBody(VertexImpulses, Body):
         return instance_sets(bodies)
 
     def _finish_step(self, u: np.ndarray, a_ext: np.ndarray, alpha_ext: np.ndarray, t0: float,
-                     correct: bool = True, corrected: tuple | None = None, write_rings: bool = True) -> np.ndarray:
-        """Error correction, ring update and frame update of the step (the paper's ERRCR). With
-        ``correct`` False (a constrained step) the drift moves to the frame's pose instead of its
-        acceleration (``Correction.drift``). ``corrected``: (da, dalpha, u) of ``Correction.apply``
-        already computed (an ``Instances`` set corrects its bodies together); ``write_rings``
-        False leaves the ring rows of this step to the caller (the set writes them together).
-        Returns [a - g', alpha], the step's row of the B ring."""
+                     free: bool = True, corrected: tuple | None = None, write_rings: bool = True) -> np.ndarray:
+        """Error correction, ring update and frame update of the step (the paper's ERRCR, with the
+        drift moved to the frame's pose: ``wsim.bem.correction``). ``free`` False: a step whose
+        constraint solve held or touched points; the body's material velocity is then the pose's
+        change over the step, not the frame's velocity. ``corrected``: (t, R_e, u'') of
+        ``Correction.drift`` already computed (an ``Instances`` set corrects its bodies together);
+        ``write_rings`` False leaves the ring rows of this step to the caller (the set writes them
+        together). Returns [a - g', alpha] + X p, the step's row of the B ring."""
         st = self.state
         so, f = self._so, st.frame
         n3 = so.size
         g_body = f.R.T @ self._gravity  # g' (Eq. 11a)
         finite = bool(np.all(np.isfinite(u)))  # else no correction (its SVD fails): _check_state reports it
+        transfer = None
         if self.frame_update:
-            da = dalpha = np.zeros(3)
-            transfer = None
             if corrected is not None:
-                da, dalpha, u = corrected
-            elif self.error_correction and correct and finite:
-                da, dalpha, u = so.correction.apply(u)
-            elif self.error_correction and finite:  # a constrained step: the drift goes to the pose (see ``step``)
+                *transfer, u = corrected
+            elif self.error_correction and finite:
                 *transfer, u = so.correction.drift(u)
-            b = np.concatenate([a_ext + da, alpha_ext + dalpha])  # [a - g', alpha]
+            b = np.concatenate([a_ext, alpha_ext])  # [a - g', alpha]: the frame's, exact (Eq. 10)
+            b_ring = b if self._balance is None else b + self._balance  # the BEM's (``load_balance``)
         else:
             # a = alpha = 0 in Eq. (9): H_0 u = G_0 p - D_0 g' + h
-            b = np.concatenate([-g_body, np.zeros(3)])
+            b = b_ring = np.concatenate([-g_body, np.zeros(3)])
             u = u + so.E @ np.concatenate([-(a_ext + g_body), -alpha_ext])
         t0 = self._tick("correction", t0)
         if write_rings:
             slot = st.ring % so.n_max
             self._u_in.numpy()[:n3] = u
-            self._b_in.numpy()[:] = b
+            self._b_in.numpy()[:] = b_ring
             wp.copy(st.U, self._u_in, dest_offset=slot * so.pitch, count=n3)
             wp.copy(st.P, self._p, dest_offset=slot * so.pitch, count=n3)
             wp.copy(st.B, self._b_in, dest_offset=slot * 6, count=6)
             if self._scratch is not None:  # the frame terms that go with the stored G'_k (``compression.folded_G``)
-                self._bf_in.numpy()[:] = b - np.concatenate([a_ext, alpha_ext])
+                self._bf_in.numpy()[:] = b_ring - np.concatenate([a_ext, alpha_ext])
             stepper.ring_written(so, self._U_k, self._P_k, slot, self._scratch, self._bf_in)
         if self.frame_update:
             T_old, R_old = f.T.copy(), f.R.copy()
@@ -1217,19 +1222,19 @@ class BemBody(VertexImpulses, Body):
             if transfer is not None:  # x + u = R_e (x + u'' - c0) + c0 + t: every point stays put
                 drift, R_e = transfer
                 c0 = so.correction.c0
-                # Only the pose. Handing the drift's rate to the velocity as well made the drift a
-                # support force (23 % of a resting 26-node cube's weight, 7 % at 98 nodes) and
-                # the clamped cantilever scene unstable; the paper's da before the solve held 2.5 %
-                # of the cube's weight and let the cantilever droop further every second. The cost:
-                # on a held or resting body the frame's velocity is not the material's (README).
+                # Only the pose. Handing the drift's rate to the velocity (the paper's da, dalpha)
+                # made momentum that no load applied: 5 % of a load's impulse on a 26-node cube
+                # (what is left of it once the loads are balanced is a transient that sums to
+                # zero), and on a resting cube a support force of 2.5-23 % of its weight.
                 f.T = f.T + f.R @ (c0 + drift - R_e @ c0)
                 f.R = f.R @ R_e
+            if free or transfer is None:  # the frame carries the momentum the loads gave, exactly
+                st.material_velocity, st.material_omega = f.velocity.copy(), f.omega.copy()
+                st.frame_is_material = True
+            else:  # held or resting: the constraints hold the points, so the pose's change is the motion
                 st.material_velocity = (f.T - T_old) / self.dt
                 st.material_omega = rotation_vector(f.R @ R_old.T) / self.dt
                 st.frame_is_material = False
-            else:
-                st.material_velocity, st.material_omega = f.velocity.copy(), f.omega.copy()
-                st.frame_is_material = True
             if st.steps % 100 == 99:
                 f.reorthonormalize()
         st.u = u
@@ -1237,7 +1242,7 @@ class BemBody(VertexImpulses, Body):
         st.steps += 1
         self._tick("frame", t0)
         self._check_state()
-        return b
+        return b_ring
 
     def _check_growth(self, peak: float, steps: int) -> None:
         """Windows of n_max steps: five in a row, all unloaded, each with a peak |u| 20 % above the

@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from wsim.bem.correction import Correction
+from wsim.bem.correction import Correction, load_balance
 from wsim.bem.factorization import cupy_module
 from wsim.bem.operators import PRECISIONS, BemOperators
 from wsim.errors import InvalidParameter
@@ -78,7 +78,13 @@ class StepOperators:
     @cached_property
     def correction(self) -> Correction:
         """Error-correction pieces, built on first use (bodies without the correction never pay)."""
-        return Correction.from_operators(self.operators, self.E)
+        return Correction.from_operators(self.operators)
+
+    @cached_property
+    def load_balance(self) -> np.ndarray:
+        """(6, 3N) ``correction.load_balance``, built when a body on this set first takes a load
+        (a dense solve with the summed history H_s: bodies without loads never pay)."""
+        return load_balance(self.operators, self.correction)
 
     @cached_property
     def device_correction(self) -> Any:
@@ -86,7 +92,7 @@ class StepOperators:
         step a body keeps on the device."""
         from wsim.bem.device_step import DeviceCorrection  # it launches the passes of this module
 
-        return DeviceCorrection.build(self.correction, self.device)
+        return DeviceCorrection.build(self.correction, self.E, self.device)
 
     @cached_property
     def many_backend(self) -> str:
