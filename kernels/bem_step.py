@@ -189,11 +189,14 @@ def correct_step(
     wq: wp.array(dtype=wp.vec3d),
     w: wp.array(dtype=wp.float64),
     cx: wp.array(dtype=wp.vec3d),
+    PQH: wp.array(dtype=wp.mat33d),
     Ea: wp.array(dtype=wp.mat33d),
     Eb: wp.array(dtype=wp.mat33d),
     w_sum: wp.float64,
     sum_wq: wp.vec3d,
-    c0: wp.vec3d,
+    K_a: wp.mat33d,
+    M_t: wp.mat33d,
+    M_a: wp.mat33d,
     inertia: wp.mat33d,
     inertia_inv: wp.mat33d,
     gravity: wp.vec3d,
@@ -210,43 +213,48 @@ def correct_step(
     divergence_limit: wp.float64,
     halt: wp.array(dtype=wp.int32),
 ):
-    """The ERRCR stage of a free step (paper Sec. 3.2.1 with the drift moved to the pose, and
-    Eq. 11) by one block, in float64, after u_n of Eq. (12) (``BemBody._finish_step`` with
-    ``wsim.bem.correction.Correction.drift``). ``ext`` = [A p_n, C p_n, X p_n] (X:
-    ``correction.load_balance``), read only ``with_p``:
+    """The ERRCR stage of a free step (paper Sec. 3.2.1 and Eq. 11) by one block, in float64, after
+    u_n of Eq. (12) (``wsim.bem.correction.Correction.apply``, then ``BemBody._finish_step``).
+    ``ext`` = [A p_n, C p_n + f, X p_n, f] (X: ``correction.load_balance``; f: the push's torque
+    fix, ``BemBody._push_torque``), read only ``with_p``; u_n first takes the loads' balance,
+    u_i += Ea_i X_a p + Eb_i X_alpha p:
 
-    1. u_i <- u_i + Ea_i X_a p + Eb_i X_alpha p (the loads' balance in the BEM's frame terms);
-    2. t = sum_i w_i u_i / sum_i w_i and the moment A = sum_i (q_i + u_i - t) (w_i q_i)^T
-       (q_i = x_i - c_0; the t term is t (sum_i w_i q_i)^T, zero up to round-off); R_e = polar(A);
-    3. u''_i = R_e^T (q_i + u_i - t) + c_0 - x_i (float64 out, and the ring row U[slot] in storage
-       precision), P[slot] = p_n, B[slot] = [A p_n, C p_n] + X p_n;
-    4. the frame (Eq. 11d-g, ``wsim.rigid.RigidFrame.update``) with the loads' [A p_n, C p_n]
-       alone: T_dot += dt (g + R b_a); L += dt R I b_alpha, omega = R I^-1 R^T L (``gyroscopic``)
-       or omega += dt R b_alpha; R <- exp(dt [omega]x) R; T += dt T_dot; then the pose takes the
-       drift: T += R (c_0 + t - R_e c_0), R <- R R_e (every point x + u stays where it is);
-    5. the log row ``counter`` (mod its length): [max_i |u_i|, flags], flags 1: u non-finite,
+    1. t = sum_i w_i u_i / sum_i w_i and the moment A = sum_i (q_i + u_i - t) (w_i q_i)^T
+       (q_i = x_i - c_0; the t term is t (sum_i w_i q_i)^T, zero up to round-off);
+    2. R_e = polar(A) (shape matching), da = -K_a t;
+    3. dalpha = M_t t + M_a da + P_Q H_0 du, du_i = R_e^T (q_i + u_i - t) + c_0 - x_i - (u_i - t)
+       (M_t = -P_Q H_0 (1 (x) I), M_a = -P_Q D_0: the residual r_1 of step 5 projected);
+    4. u_n <- u_n + E [da; dalpha] (float64 out, and the ring row U[slot] in storage precision),
+       P[slot] = p_n, B[slot] = b + X p_n - [0; f] with b = [a_ext + da, alpha_ext + dalpha]
+       = [a - g', alpha] (the BEM's terms: the balance in, the frame's torque fix out);
+    5. the frame (Eq. 11d-g, ``wsim.rigid.RigidFrame.update``): T_dot += dt (g + R b_a);
+       L += dt R I b_alpha, omega = R I^-1 R^T L (``gyroscopic``) or omega += dt R b_alpha;
+       R <- exp(dt [omega]x) R; T += dt T_dot;
+    6. the log row ``counter`` (mod its length): [max_i |u_i|, flags], flags 1: u non-finite,
        2: T, 4: T_dot, 8: omega (the host's ``_check_step`` reads them after the batch); with a
        flag or max |u| > ``divergence_limit``, ``halt`` is set and the batch's later steps
        change nothing (the host stops the body at this step).
 
-    A non-finite u_n gets no correction (t = 0, R_e = I), as on the host.
+    A non-finite u_n gets no correction (da = dalpha = 0), as on the host.
 
-    Per-node blocks: Ea_i, Eb_i = rows 3i..3i+2 of H_0^-1 D_0 and H_0^-1 Q_0. Launch with
-    ``wp.launch_tiled(dim=1, block_dim=...)``; the sums are tile reductions, so the result does
-    not depend on timing."""
+    Per-node blocks: PQH_i = P_Q H_0 columns 3i..3i+2; Ea_i, Eb_i = rows 3i..3i+2 of H_0^-1 D_0 and
+    H_0^-1 Q_0. Launch with ``wp.launch_tiled(dim=1, block_dim=...)``; the sums are tile
+    reductions, so the result does not depend on timing."""
     _blk, lane = wp.tid()
     if halt[0] != 0:  # an earlier step of the batch failed: the state stays at that step
         return
     T = wp.block_dim()
     N = q.shape[0]
-    bal_a = wp.vec3d()
-    bal_w = wp.vec3d()
-    if with_p != 0:
-        bal_a = load_frame(ext, 6)
-        bal_w = load_frame(ext, 9)
     s_u = wp.vec3d()
     s_A = wp.mat33d()
     bad_in = int(0)
+    bal_a = wp.vec3d()
+    bal_w = wp.vec3d()
+    fix = wp.vec3d()
+    if with_p != 0:
+        bal_a = load_frame(ext, 6)
+        bal_w = load_frame(ext, 9)
+        fix = load_frame(ext, 12)
     i = lane
     while i < N:
         un = node_u(u, i) + Ea[i] * bal_a + Eb[i] * bal_w
@@ -261,17 +269,26 @@ def correct_step(
     # a non-finite u gets no correction (as on the host, whose SVD cannot take it): the frame
     # moves with the loads alone and the log reports the displacement
     R_e = wp.identity(n=3, dtype=wp.float64)
+    da = wp.vec3d()
     if bad_in == 0:
         R_e = polar_rotation(A)
-    else:
-        t = wp.vec3d()
+        da = -(K_a * t)
+    s_d = wp.vec3d()
+    i = lane
+    while i < N and bad_in == 0:
+        un = node_u(u, i) + Ea[i] * bal_a + Eb[i] * bal_w
+        pn = q[i] + un - t
+        du = wp.transpose(R_e) * pn + cx[i] - (un - t)
+        s_d += PQH[i] * du
+        i += T
+    dalpha = M_t * t + M_a * da + wp.tile_extract(wp.tile_sum(wp.tile(s_d, preserve_type=True)), 0)
+    if bad_in != 0:
+        dalpha = wp.vec3d()
     peak = wp.float64(0.0)
     bad = int(0)
     i = lane
     while i < N:
-        un = node_u(u, i) + Ea[i] * bal_a + Eb[i] * bal_w
-        if bad_in == 0:
-            un = wp.transpose(R_e) * (q[i] + un - t) + cx[i]
+        un = node_u(u, i) + Ea[i] * (bal_a + da) + Eb[i] * (bal_w + dalpha)
         for c in range(3):
             value = un[c]
             u64[3 * i + c] = value
@@ -291,14 +308,16 @@ def correct_step(
     peak = wp.tile_extract(wp.tile_max(wp.tile(peak)), 0)
     bad = wp.tile_extract(wp.tile_max(wp.tile(bad)), 0)
     if lane == 0:
-        b_a = wp.vec3d()
-        b_w = wp.vec3d()
+        a_ext = wp.vec3d()
+        alpha_ext = wp.vec3d()
         if with_p != 0:
-            b_a = load_frame(ext, 0)
-            b_w = load_frame(ext, 3)
+            a_ext = load_frame(ext, 0)
+            alpha_ext = load_frame(ext, 3)
+        b_a = a_ext + da
+        b_w = alpha_ext + dalpha
         for c in range(3):
             B[slot, c] = B.dtype(b_a[c] + bal_a[c])
-            B[slot, 3 + c] = B.dtype(b_w[c] + bal_w[c])
+            B[slot, 3 + c] = B.dtype(b_w[c] + bal_w[c] - fix[c])
         R = wp.mat33d(frame[0], frame[1], frame[2], frame[3], frame[4], frame[5], frame[6], frame[7], frame[8])
         Tx = load_frame(frame, 9)
         v = load_frame(frame, 12) + dt * (gravity + R * b_a)
@@ -312,8 +331,6 @@ def correct_step(
             L = R * (inertia * (wp.transpose(R) * omega))
         R = rodrigues(dt * omega) * R
         Tx = Tx + dt * v
-        Tx = Tx + R * (c0 + t - R_e * c0)
-        R = R * R_e
         for r in range(3):
             for c in range(3):
                 frame[3 * r + c] = R[r, c]

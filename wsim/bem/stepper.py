@@ -78,7 +78,7 @@ class StepOperators:
     @cached_property
     def correction(self) -> Correction:
         """Error-correction pieces, built on first use (bodies without the correction never pay)."""
-        return Correction.from_operators(self.operators)
+        return Correction.from_operators(self.operators, self.E)
 
     @cached_property
     def load_balance(self) -> np.ndarray:
@@ -92,7 +92,7 @@ class StepOperators:
         step a body keeps on the device."""
         from wsim.bem.device_step import DeviceCorrection  # it launches the passes of this module
 
-        return DeviceCorrection.build(self.correction, self.E, self.device)
+        return DeviceCorrection.build(self.correction, self.device)
 
     @cached_property
     def many_backend(self) -> str:
