@@ -290,6 +290,26 @@ def test_load_balance_makes_the_static_limit_drift_free(box_ops):
     assert (ops.A @ p + X[:3] @ p)[1] / (ops.A @ p)[1] == pytest.approx(1.047, abs=0.002)
 
 
+@pytest.mark.skipif(not wp.is_cuda_available(), reason="needs CUDA")
+def test_load_balance_on_the_gpu_matches_the_host(box_ops):
+    """The loads' balance summed and solved through CuPy (``StepOperators.load_balance`` on a CUDA
+    set) is the host's to round-off (skipped without CuPy)."""
+    import scipy.linalg
+
+    from wsim.bem.correction import Correction, load_balance
+    from wsim.bem.factorization import cupy_module
+
+    cp = cupy_module()
+    if cp is None:
+        pytest.skip("CuPy (the gpu extra) not installed")
+    ops = box_ops
+    c = Correction.from_operators(ops, scipy.linalg.lu_solve(ops.H0_lu, np.concatenate([ops.D[0], ops.Q[0]], axis=1)))
+    host = load_balance(ops, c)
+    with cp.cuda.Device(0):
+        gpu = load_balance(ops, c, cp)
+    np.testing.assert_allclose(gpu, host, rtol=1e-8, atol=1e-10 * np.abs(host).max())
+
+
 @pytest.mark.parametrize("where", ["corner", "face"])
 @pytest.mark.parametrize("path", ["host", "device"])
 def test_a_held_vertex_load_changes_momentum_by_its_impulse(box_ops, where, path):

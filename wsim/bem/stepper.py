@@ -83,7 +83,12 @@ class StepOperators:
     @cached_property
     def load_balance(self) -> np.ndarray:
         """(6, 3N) ``correction.load_balance``, built when a body on this set first takes a load
-        (a dense solve with the summed history H_s: bodies without loads never pay)."""
+        (a dense solve with the summed history H_s: bodies without loads never pay), on the GPU
+        through CuPy where the set's device is one and CuPy works there."""
+        if self.device.is_cuda and _cupy_works(self.device):
+            cp = cupy_module()
+            with cp.cuda.Device(self.device.ordinal):
+                return load_balance(self.operators, self.correction, cp)
         return load_balance(self.operators, self.correction)
 
     @cached_property
