@@ -157,13 +157,19 @@ def test_a_compressed_body_in_contact_follows_the_dense_one() -> None:
         assert got[-1][:, 1].min() > -1e-3  # on the ground, not through it
 
 
-def _pushed_run(ops, shape, mat, dt: float, steps: int, **kw) -> np.ndarray:
+def _pushed_run(ops, shape, mat, dt: float, steps: int, push: str = "traction", **kw) -> np.ndarray:
     """Displacements (steps, N, 3) of a free body under gravity pushed on its side x > 0 for 0.05 s
-    (a traction with a net force: the frame accelerates)."""
+    (a traction with a net force: the frame accelerates), or, ``push="vertex"``, at one corner
+    vertex through ``add_vertex_impulses`` (the frame takes its moment at the vertex)."""
     world = wsim.World(fps=1.0 / dt, device="cpu", gravity=(0.0, -9.81, 0.0))
     body = world.add(wsim.BemBody(shape, mat, dt, operators=ops, cache=False, **kw))
     x, n = body.rest_vertices, body.rest_normals
-    body.add_traction(lambda t: -2e3 * n * (x[:, :1] > 0) * (t < 0.05))
+    if push == "vertex":
+        J = np.zeros_like(x)
+        J[np.argmax(x @ np.array([1.0, 1.0, 1.0]))] = (-2.0, 1.0, 0.5)
+        body.add_vertex_impulses(J, 0.05)
+    else:
+        body.add_traction(lambda t: -2e3 * n * (x[:, :1] > 0) * (t < 0.05))
     out = []
     for _ in range(steps):
         body.step()
@@ -171,11 +177,14 @@ def _pushed_run(ops, shape, mat, dt: float, steps: int, **kw) -> np.ndarray:
     return np.array(out)
 
 
+@pytest.mark.parametrize("push", ["traction", "vertex"])
 @pytest.mark.parametrize("matvec", ["blas", "warp"])
-def test_the_folded_history_steps_like_the_dense_body(matvec: str) -> None:
+def test_the_folded_history_steps_like_the_dense_body(matvec: str, push: str) -> None:
     """The compressed set stores G'_k = G_k + D_k A + Q_k C and its frame terms take [a - g', alpha]
     less [A p, C p] (the body's, or rebuilt from the rings): an identity, so at CR 1 a pushed,
-    falling body steps like the dense one to round-off (float64 on the host, float32 kernels)."""
+    falling body steps like the dense one to round-off (float64 on the host, float32 kernels),
+    pushed by a traction or at a vertex (whose moment the frame takes at the vertex, the history
+    not)."""
     from wsim.bem.compression import folded_G
 
     shape = wmesh.bumpy_cube(size=0.2, divisions=4, amplitude=0.01)
@@ -184,8 +193,8 @@ def test_the_folded_history_steps_like_the_dense_body(matvec: str) -> None:
     ops = build_operators(shape, mat, 0.005, device="cpu", cache=False, precision=precision)
     exact = 1e-12 if matvec == "blas" else 1e-6  # G_k is stored in the operators' precision
     np.testing.assert_allclose(folded_G(ops, 0), ops.Gp, rtol=0, atol=exact * np.abs(ops.Gp).max())
-    ref = _pushed_run(ops, shape, mat, 0.005, 15, matvec=matvec)
-    got = _pushed_run(ops, shape, mat, 0.005, 15, matvec=matvec, compression=1.0)
+    ref = _pushed_run(ops, shape, mat, 0.005, 15, push, matvec=matvec)
+    got = _pushed_run(ops, shape, mat, 0.005, 15, push, matvec=matvec, compression=1.0)
     tol = 1e-9 if matvec == "blas" else 2e-5
     assert np.abs(got - ref).max() <= tol * np.abs(ref).max(), np.abs(got - ref).max() / np.abs(ref).max()
 

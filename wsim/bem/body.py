@@ -1252,8 +1252,10 @@ class BemBody(VertexImpulses, Body):
             wp.copy(st.U, self._u_in, dest_offset=slot * so.pitch, count=n3)
             wp.copy(st.P, self._p, dest_offset=slot * so.pitch, count=n3)
             wp.copy(st.B, self._b_in, dest_offset=slot * 6, count=6)
-            if self._scratch is not None:  # the frame terms that go with the stored G'_k (``compression.folded_G``)
-                self._bf_in.numpy()[:] = b_ring - np.concatenate([a_ext, alpha_ext])
+            if self._scratch is not None:  # the frame terms that go with the stored G'_k (``compression.folded_G``):
+                # they fold A p, C p; alpha_ext has the push's torque fix on top, which the ring has not
+                fix = self._torque if self._balance is not None else np.zeros(3)
+                self._bf_in.numpy()[:] = b_ring - np.concatenate([a_ext, alpha_ext - fix])
             stepper.ring_written(so, self._U_k, self._P_k, slot, self._scratch, self._bf_in)
         if self.frame_update:
             T_old, R_old = f.T.copy(), f.R.copy()
