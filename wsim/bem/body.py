@@ -102,7 +102,6 @@ class BemState:
     frame_is_material: bool = True
 
 
-
 class BemBody(VertexImpulses, Body):
     """An elastic body simulated by convolution-quadrature BEM in a rigid moving frame.
 
@@ -1166,14 +1165,16 @@ class BemBody(VertexImpulses, Body):
     def _frame_loads(self, p: np.ndarray, t: float) -> np.ndarray:
         """(15,) [a_ext, alpha_ext, X p, fix] of the tractions p (3N,) at step end time t: the frame's
         accelerations (A p and C p + fix, Eq. 10), the loads' balance for the BEM's own frame terms
-        (``correction.load_balance``) and the push's torque fix (``_push_torque``: the frame's alpha
-        has it, the BEM's terms not). Sets ``_balance`` (X p) and ``_torque`` (fix) for the step."""
+        (``correction.load_balance``; zero without the error correction) and the push's torque fix
+        (``_push_torque``: the frame's alpha has it, the BEM's terms not; with ``frame_update``).
+        Sets ``_balance`` (X p) and ``_torque`` (fix) for the step."""
         so = self._so
         ops = so.operators
         out = np.zeros(15)
         out[0:3], out[3:6] = ops.A @ p, ops.C @ p
-        if self.frame_update and self.error_correction:
-            out[6:12] = so.load_balance @ p
+        if self.frame_update:  # the balance serves the error correction; the fix, the frame alone
+            if self.error_correction:
+                out[6:12] = so.load_balance @ p
             fix = self._push_torque(t)
             if fix is not None:
                 out[3:6] += fix
