@@ -295,7 +295,7 @@ class BemBody(VertexImpulses, Body):
         self._response: PointResponse | None = None
         self._coupling_load = False  # whether add_vertex_impulses' load is registered
         self._balance: np.ndarray | None = None  # (6,) the coming step's load balance X p (``_frame_loads``)
-        self._torque = np.zeros(3)  # the coming step's push torque fix (``_push_torque``)
+        self._torque = np.zeros(3)  # the coming step's push torque fix (``_push_torque``; zero without)
         self.constraint_history: list[wc.SolveRecord] = []  # diagnostics of every constrained step (not state)
         self.unconverged_steps = 0
 
@@ -1149,7 +1149,7 @@ class BemBody(VertexImpulses, Body):
         p = self._tractions(t) if self._loads else None
         has_p = p is not None and bool(np.any(p))
         self._p_loads = p if has_p else None
-        self._balance = None
+        self._balance, self._torque = None, np.zeros(3)
         if has_p:
             self._loaded_now = True
             self._p_in.numpy()[:n3] = p
@@ -1255,8 +1255,7 @@ class BemBody(VertexImpulses, Body):
             wp.copy(st.B, self._b_in, dest_offset=slot * 6, count=6)
             if self._scratch is not None:  # the frame terms that go with the stored G'_k (``compression.folded_G``):
                 # they fold A p, C p; alpha_ext has the push's torque fix on top, which the ring has not
-                fix = self._torque if self._balance is not None else np.zeros(3)
-                self._bf_in.numpy()[:] = b_ring - np.concatenate([a_ext, alpha_ext - fix])
+                self._bf_in.numpy()[:] = b_ring - np.concatenate([a_ext, alpha_ext - self._torque])
             stepper.ring_written(so, self._U_k, self._P_k, slot, self._scratch, self._bf_in)
         if self.frame_update:
             T_old, R_old = f.T.copy(), f.R.copy()
