@@ -42,7 +42,7 @@ def response_blocks(
     Rk: wp.mat33d,
     R1: wp.mat33d,
     inv_area: wp.array(dtype=wp.float64),
-    C_over_a: wp.array(dtype=wp.mat33d),
+    torque: wp.array(dtype=wp.mat33d),
     lin_a: wp.array(dtype=wp.mat33d),
     lin_c: wp.array(dtype=wp.mat33d),
     inv_mass: wp.float64,
@@ -53,12 +53,14 @@ def response_blocks(
     a node has weights (1, 0, 0)): with the force on point j spread to its nodes n_jb by w_jb,
 
         K_ij = sum_a sum_b w_ia w_jb R*_k W(n_ia, n_jb) R_{k-1}^T / a(n_jb)
-               + lin_a_i / m + lin_c_i R_{k-1} (sum_b w_jb C(n_jb) / a(n_jb)) R_{k-1}^T
+               + lin_a_i / m + lin_c_i R_{k-1} T_j R_{k-1}^T
 
-    (the weights of a point sum to 1). With the frame update lin_a_i = dt^2 I and
-    lin_c_i = -dt^2 [r_i]x (module docstring, r_i the point's lever arm); without it (a fixed frame,
-    Eq. 9 with a = alpha = 0) they remove the D_0 A + Q_0 C part of G': lin_a_i = -R E_D,i R^T,
-    lin_c_i = -R E_Q,i R^T with E = [H_0^-1 D_0, H_0^-1 Q_0] at the point. W(n, c) is read at
+    (the weights of a point sum to 1). With the frame update lin_a_i = dt^2 I,
+    lin_c_i = -dt^2 [r_i]x (module docstring, r_i the point's lever arm) and T_j = I^-1 [l_j]x, the
+    frame's angular acceleration per unit force at point j (l_j its lever in frame axes); without
+    it (a fixed frame, Eq. 9 with a = alpha = 0) they remove the D_0 A + Q_0 C part of G':
+    lin_a_i = -R E_D,i R^T, lin_c_i = -R E_Q,i R^T with E = [H_0^-1 D_0, H_0^-1 Q_0] at the point
+    and T_j = sum_b w_jb C(n_jb) / a(n_jb) (``wsim.bem.constraints.point_torques``). W(n, c) is read at
     rows 3 row_of[n].. of ``W`` (all rows of W, or only those of the points' nodes). Launch with
     dim = (m, m)."""
     i, j = wp.tid()
@@ -67,15 +69,13 @@ def response_blocks(
     ni = ids[i]
     nj = ids[j]
     Wsum = wp.mat33d()
-    Csum = wp.mat33d()
     for b in range(3):
         if wj[b] != wp.float64(0.0):
             col = nj[b]
-            Csum += wj[b] * C_over_a[col]
             for a in range(3):
                 if wi[a] != wp.float64(0.0):
                     Wsum += (wi[a] * wj[b] * inv_area[col]) * w_block(W, int(row_of[ni[a]]), col)
-    blk = Rk * Wsum * wp.transpose(R1) + lin_a[i] * inv_mass + lin_c[i] * (R1 * Csum * wp.transpose(R1))
+    blk = Rk * Wsum * wp.transpose(R1) + lin_a[i] * inv_mass + lin_c[i] * (R1 * torque[j] * wp.transpose(R1))
     for p in range(3):
         for q in range(3):
             K[3 * i + p, 3 * j + q] = blk[p, q]

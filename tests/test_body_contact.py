@@ -56,21 +56,16 @@ def test_head_on_collision_conserves_momentum_and_does_not_interpenetrate(box_op
     assert depth < 3.0 * a.constraint_tolerance
 
 
-@pytest.mark.slow
-def test_glancing_collision_angular_momentum_converges_with_the_mesh():
-    """A point force becomes the traction f / a_j on its node's hat function, whose torque acts at
-    the hat's centroid, not at the node (Eq. 10); the two sides of a contact then exert a small
-    net torque on the pair. Angular momentum kept: 79.8 % at 26 nodes per cube, 93.0 % at 98,
-    97.9 % at 386: it converges as the mesh is refined."""
-    kept = []
-    mesh = BOX
-    for _ in range(2):
-        ops = build_operators(mesh, MAT, DT, cache=False, device="cpu")
-        a, b, _, L0, _ = _collide(ops, mesh, "cpu")
-        kept.append((a.angular_momentum(about=(0, 0, 0)) + b.angular_momentum(about=(0, 0, 0)))[2] / L0[2])
-        mesh = mesh.subdivide()
-    assert abs(1.0 - kept[1]) < 0.5 * abs(1.0 - kept[0])
-    assert abs(1.0 - kept[1]) < 0.1
+def test_glancing_collision_keeps_angular_momentum(box_ops, device):
+    """The frame turns by each contact force's own moment at its point (``BemBody._point_alphas``),
+    so the two sides of a contact exert no net torque on the pair: the glancing blow keeps the
+    pair's angular momentum about the origin to 1 % (0.22 % measured at 26 nodes a cube, 0.39 %
+    at 98). With the moment of its traction, which acts at the hat functions' centroids, 20 % was
+    lost at 26 nodes and 7 % at 98."""
+    a, b, _, L0, _ = _collide(box_ops, BOX, device)
+    L = a.angular_momentum(about=(0, 0, 0)) + b.angular_momentum(about=(0, 0, 0))
+    assert np.linalg.norm(a.contact_impulse) > 1.0
+    assert np.abs(L - L0).max() < 1e-2 * np.linalg.norm(L0)
 
 
 def test_cube_stacked_on_a_cube_rests(box_ops, device):

@@ -4,6 +4,12 @@
 ``PointResponse`` holds what the response needs per node besides W = H_0^-1 G' (on the device in
 ``StepOperators``, or compressed: then ``response_rows`` rebuilds the rows the constraint points
 need): 1 / a_j and C_j / a_j. It is immutable and shared like the operators.
+
+The frame's angular response to a point force acts at the point itself (I^-1 l x f, ``BemBody``):
+the traction f / a_j that carries it to the BEM spreads it over node j's hat function, whose
+moment C_j / a_j acts at the hat's centroid, and a contact's two sides would then exert a net
+torque on the pair (20 % of a glancing blow's angular momentum lost at 26 nodes a cube).
+
 """
 
 from __future__ import annotations
@@ -29,12 +35,13 @@ class PointResponse:
     """Per-node pieces of K (``wsim.kernels.bem_constraints``) on one device.
 
     Attributes:
-        area: (N,) a_j = int N_j dGamma [m^2]; inv_area, C_over_a on the device.
+        area: (N,) a_j = int N_j dGamma [m^2]; inv_area on the device.
+        C_over_a: (N, 3, 3) C_j / a_j, the frame terms' alpha per unit force at node j (host).
     """
 
     area: np.ndarray
     inv_area: wp.array
-    C_over_a: wp.array
+    C_over_a: np.ndarray
 
     @classmethod
     def build(cls, so: StepOperators) -> PointResponse:
@@ -43,13 +50,19 @@ class PointResponse:
         n = ops.n_nodes
         C = ops.C.reshape(3, n, 3).transpose(1, 0, 2) / area[:, None, None]  # C_j / a_j, (N, 3, 3)
         return cls(area=area, inv_area=wp.array(1.0 / area, dtype=wp.float64, device=so.device),
-                   C_over_a=wp.array(np.ascontiguousarray(C), dtype=wp.mat33d, device=so.device))
+                   C_over_a=np.ascontiguousarray(C))
+
+
+def point_torques(pr: PointResponse, points) -> np.ndarray:
+    """(m, 3, 3) sum_b w_jb C(n_jb) / a(n_jb): the BEM's frame terms' alpha per unit force (frame
+    axes) at each of ``points`` (``wsim.constraints.PointRefs``)."""
+    return np.einsum("mk,mkab->mab", points.w, pr.C_over_a[points.ids])
 
 
 def response_matrix(so: StepOperators, pr: PointResponse, points, Rk: np.ndarray, R1: np.ndarray,
-                    lin_a: np.ndarray, lin_c: np.ndarray) -> tuple[wp.array, wp.array]:
+                    lin_a: np.ndarray, lin_c: np.ndarray, torque: np.ndarray) -> tuple[wp.array, wp.array]:
     """K (3m, 3m) [m/N] of the m ``points`` (``wsim.constraints.PointRefs``; float64, on the device)
-    and its transpose; lin_a, lin_c (m, 3, 3) as in ``response_blocks`` (``frame_terms``)."""
+    and its transpose; lin_a, lin_c, torque (m, 3, 3) as in ``response_blocks`` (``frame_terms``)."""
     d = so.device
     m = len(points)
     K = wp.empty((3 * m, 3 * m), dtype=wp.float64, device=d)
@@ -62,7 +75,7 @@ def response_matrix(so: StepOperators, pr: PointResponse, points, Rk: np.ndarray
     wp.launch(concrete(kb.response_blocks, W=(2, W.dtype)), dim=(m, m), device=d,
               inputs=[W, row_of, wp.array(points.ids.astype(np.int32), dtype=wp.vec3i, device=d),
                       wp.array(points.w, dtype=wp.vec3d, device=d),
-                      wp.mat33d(*Rk.ravel()), wp.mat33d(*R1.ravel()), pr.inv_area, pr.C_over_a, mats(lin_a),
+                      wp.mat33d(*Rk.ravel()), wp.mat33d(*R1.ravel()), pr.inv_area, mats(torque), mats(lin_a),
                       mats(lin_c), wp.float64(1.0 / so.operators.mass), K, Kt])
     return K, Kt
 
