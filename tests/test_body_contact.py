@@ -24,48 +24,88 @@ def _depth(a, b) -> float:
     return float(np.linalg.norm(b.points()[hit] - P, axis=1).max())
 
 
-def _collide(ops, mesh, device):
-    """Two cubes thrown at each other at 1 m/s in zero gravity, offset by 5 cm so the blow is
-    glancing; returns them after 0.3 s, the pair's momentum and angular momentum about the origin
-    at the start, and the deepest interpenetration seen."""
+def _frames_momenta(bodies) -> tuple[np.ndarray, np.ndarray]:
+    """The BEM bodies' frames' momentum and angular momentum about the origin (what contact
+    impulses move; the read-outs add a constrained step's pose transfer)."""
+    p, L = np.zeros(3), np.zeros(3)
+    for body in bodies:
+        f = body.state.frame
+        p += body.mass * f.velocity
+        L += body.world_inertia() @ f.omega + np.cross(f.T, body.mass * f.velocity)
+    return p, L
+
+
+def _collide(ops, mesh, device, offset: float = 0.05, steps: int = 150) -> dict:
+    """Two cubes thrown at each other at 1 m/s in zero gravity, offset by ``offset`` [m] (5 cm: the
+    blow is glancing), stepped ``steps`` steps (0.3 s): the cubes ``a``, ``b``, the pair's momentum
+    ``p0`` and angular momentum about the origin ``L0`` at the start, the ``depth`` of the deepest
+    interpenetration seen, and the largest change of the frames' momentum ``dp`` and angular
+    momentum ``dL`` while they touched (what the contact impulses move)."""
     world = wsim.World(fps=1.0 / DT, device=device, gravity=(0.0, 0.0, 0.0))
     a = world.add(wsim.BemBody(mesh, MAT, DT, operators=ops, name="a", position=(-0.15, 0.0, 0.0),
                                velocity=(1.0, 0.0, 0.0), friction=0.3))
-    b = world.add(wsim.BemBody(mesh, MAT, DT, operators=ops, name="b", position=(0.15, 0.05, 0.0),
+    b = world.add(wsim.BemBody(mesh, MAT, DT, operators=ops, name="b", position=(0.15, offset, 0.0),
                                velocity=(-1.0, 0.0, 0.0), friction=0.3))
     p0 = a.linear_momentum() + b.linear_momentum()
     L0 = a.angular_momentum(about=(0, 0, 0)) + b.angular_momentum(about=(0, 0, 0))
-    depth = 0.0
-    for _ in range(150):
+    out = dict(a=a, b=b, p0=p0, L0=L0, depth=0.0, dp=0.0, dL=0.0)
+    for _ in range(steps):
         world.step()
-        depth = max(depth, _depth(a, b), _depth(b, a))
-    return a, b, p0, L0, depth
+        out["depth"] = max(out["depth"], _depth(a, b), _depth(b, a))
+        if len(a.state.point_nodes) or len(b.state.point_nodes):
+            p, L = _frames_momenta((a, b))
+            out["dp"] = max(out["dp"], float(np.abs(p - p0).max()))
+            out["dL"] = max(out["dL"], float(np.abs(L - L0).max()))
+    return out
 
 
 def test_head_on_collision_conserves_momentum_and_does_not_interpenetrate(box_ops, device):
-    """The cubes meet, push apart and leave: the contact impulses are equal and opposite, the pair's
-    momentum is kept (to 1e-3: after they part, each rings freely and the paper's error correction
-    hands its deformation's drift to its frame, which is not exactly momentum-neutral), and no node
-    goes deeper into the other than a few times the solver's tolerance (1.3x measured, at the first
-    touch: the constraint is linearized on the predicted surface)."""
-    a, b, p0, _, depth = _collide(box_ops, BOX, device)
+    """The cubes meet, push apart and leave: the contact impulses are equal and opposite, so the
+    frames' momentum is kept through contact to round-off; after they part each rings freely and
+    the paper's error correction hands its deformation's drift to its frame, which is not exactly
+    momentum-neutral: the pair's momentum 0.3 s on is kept to 3e-3 of one cube's (2.0e-3
+    measured, out of the blow's plane, in the first steps after they part; 0.8e-3 while nodes on
+    the other's face edges took a side face's normal, ``wsim.contact.facing_faces``), and no node
+    goes deeper into the other than a few times the solver's tolerance (1.0x measured, at the
+    first touch: the constraint is linearized on the predicted surface)."""
+    c = _collide(box_ops, BOX, device)
+    a, b = c["a"], c["b"]
     assert np.linalg.norm(a.contact_impulse) > 1.0
     assert np.abs(a.contact_impulse + b.contact_impulse).max() < 1e-9 * np.linalg.norm(a.contact_impulse)
-    assert np.abs(a.linear_momentum() + b.linear_momentum() - p0).max() < 1e-3 * a.mass * 1.0
+    assert c["dp"] < 1e-9 * a.mass * 1.0
+    assert np.abs(a.linear_momentum() + b.linear_momentum() - c["p0"]).max() < 3e-3 * a.mass * 1.0
     assert a.frame.velocity[0] < 0.0 < b.frame.velocity[0]  # they separated
-    assert depth < 3.0 * a.constraint_tolerance
+    assert c["depth"] < 3.0 * a.constraint_tolerance
 
 
 def test_glancing_collision_keeps_angular_momentum(box_ops, device):
     """The frame turns by each contact force's own moment at its point (``BemBody._point_alphas``),
-    so the two sides of a contact exert no net torque on the pair: the glancing blow keeps the
-    pair's angular momentum about the origin to 1 % (0.22 % measured at 26 nodes a cube, 0.39 %
-    at 98). With the moment of its traction, which acts at the hat functions' centroids, 20 % was
-    lost at 26 nodes and 7 % at 98."""
-    a, b, _, L0, _ = _collide(box_ops, BOX, device)
+    so the two sides of a contact exert no net torque on the pair: through the glancing blow the
+    frames' angular momentum about the origin stays within 1 % of its start (0.44 % measured at
+    26 nodes a cube; with the moment of the traction, which acts at the hat functions' centroids,
+    20 % was lost at 26 nodes and 7 % at 98). In the first free steps after they part, the
+    paper's error correction hands each cube's drift to its frame and moves it by another 0.8 %:
+    the read-out 0.3 s on is kept to 2 % (1.0 % measured)."""
+    c = _collide(box_ops, BOX, device)
+    a, b, L0 = c["a"], c["b"], c["L0"]
     L = a.angular_momentum(about=(0, 0, 0)) + b.angular_momentum(about=(0, 0, 0))
     assert np.linalg.norm(a.contact_impulse) > 1.0
-    assert np.abs(L - L0).max() < 1e-2 * np.linalg.norm(L0)
+    assert c["dL"] < 1e-2 * np.linalg.norm(L0)
+    assert np.abs(L - L0).max() < 2e-2 * np.linalg.norm(L0)
+
+
+def test_cubes_of_one_mesh_meeting_face_to_face_part(box_ops, device):
+    """Cubes of one mesh thrown face to face with no offset: every node of the touching faces but the
+    centre lies on an edge of the other's face, whose nearest face is a tie. Taken as the side
+    face, its normal and friction held the faces together as they sprang apart: the cubes stopped
+    dead, pulled together in 35 steps (an independent check). With the face each node faces
+    (``wsim.contact.facing_faces``) they part at 0.36 m/s each, like the same cubes offset by 3 cm
+    (0.32 m/s) or of 98 nodes (0.39 m/s), and the contact pushes them apart."""
+    c = _collide(box_ops, BOX, device, offset=0.0, steps=60)
+    a, b = c["a"], c["b"]
+    assert a.frame.velocity[0] < -0.2 and b.frame.velocity[0] > 0.2
+    assert c["dp"] < 1e-9 * a.mass * 1.0
+    assert a.contact_impulse[0] < -1.0
 
 
 def test_cube_stacked_on_a_cube_rests(box_ops, device):

@@ -21,6 +21,7 @@ import numpy as np
 import warp as wp
 
 from wsim.constraints import PointRefs
+from wsim.mesh.surface import vertex_normals
 from wsim.kernels import mesh as km
 
 #: friction of a body that gives none, for contact between bodies (the larger of the two is used)
@@ -96,6 +97,65 @@ def points_inside(points: np.ndarray, V: np.ndarray, faces: np.ndarray, margin: 
     return nearest_faces(mesh, points, reach, margin, device, closed=closed)
 
 
+#: a point's nearest face is re-examined when its normal faces the point's own by less than this
+#: (cosine of the angle between the face's normal and the opposite of the point's own)
+FACING_COS = 0.0
+#: how much more a neighbouring face must face the point's own surface to be taken instead
+FACING_MARGIN = 0.1
+
+
+def _barycentric(q: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """(n, 3) barycentric weights of point q (3,) projected on each triangle (n, 3, 3)."""
+    e0, e1, d = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], q - tri[:, 0]
+    d00, d01, d11 = (e0 * e0).sum(1), (e0 * e1).sum(1), (e1 * e1).sum(1)
+    d20, d21 = (d * e0).sum(1), (d * e1).sum(1)
+    den = np.maximum(d00 * d11 - d01 * d01, 1e-300)
+    w1 = (d11 * d20 - d01 * d21) / den
+    w2 = (d00 * d21 - d01 * d20) / den
+    return np.stack([1.0 - w1 - w2, w1, w2], axis=1)
+
+
+def facing_faces(points: np.ndarray, face: np.ndarray, bary: np.ndarray, normal: np.ndarray, V: np.ndarray,
+                 F: np.ndarray, own: np.ndarray, reach: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(face, bary, normal) of ``points`` inside the surface (V, F), each moved from its nearest face
+    to a face around it (sharing a vertex) that faces the point's own surface better: one whose
+    outward normal is more opposed to the point's own outward normal ``own`` (k, 3), by more than
+    FACING_MARGIN, among those whose plane the point is behind by at most ``reach`` (k,) [m] (how
+    far it can have gone in this step). Only points whose nearest face's normal is less opposed
+    than FACING_COS are re-examined.
+
+    Near an edge the nearest face is not the one a point came through: two cubes of one mesh
+    meeting face to face have every node of the touching faces but the centre on the other's
+    face edges; pressed a little into it, half of them were nearer a side face than the face they
+    pressed on, and took its normal, across the blow. Their friction on that normal then held
+    the faces together as they sprang apart (the cubes stopped dead). A corner meeting an edge,
+    whose own normal faces both faces alike, keeps the nearest."""
+    todo = np.flatnonzero(np.einsum("ij,ij->i", normal, own) > -FACING_COS)
+    if not len(todo):
+        return face, bary, normal
+    face, bary, normal = face.copy(), bary.copy(), normal.copy()
+    area = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    unit = area / np.maximum(np.linalg.norm(area, axis=1, keepdims=True), 1e-300)
+    for i in todo:
+        around = np.flatnonzero(np.isin(F, F[face[i]]).any(axis=1))
+        behind = -np.einsum("ij,ij->i", unit[around], points[i] - V[F[around, 0]])  # depth behind each plane
+        # the point's projection on each face's plane in that face's barycentric weights: only a face
+        # that holds it is a candidate (a point off the face it pushes on would carry the pair a net
+        # moment, (P_a - P_b) x f)
+        q = points[i] - behind[:, None] * -unit[around]
+        w = np.stack([_barycentric(q[j], V[F[c]][None])[0] for j, c in enumerate(around)])
+        ok = (behind >= 0.0) & (behind <= reach[i]) & (w.min(axis=1) >= -1e-6)
+        if not ok.any():
+            continue
+        around, w = around[ok], w[ok]
+        score = unit[around] @ own[i]
+        k = int(np.argmin(score))
+        if score[k] >= float(normal[i] @ own[i]) - FACING_MARGIN:
+            continue
+        face[i], bary[i], normal[i] = around[k], np.maximum(w[k], 0.0) / np.maximum(w[k], 0.0).sum(), unit[around[k]]
+    return face, bary, normal
+
+
 def body_contacts(surfaces: Sequence[tuple[Any, np.ndarray, np.ndarray, np.ndarray, float | None, int]], margin: float,
                   device: wp.Device, skip: set | frozenset = frozenset()) -> list[PairContacts]:
     """Contacts between every pair of ``surfaces`` ((body, predicted node positions (N, 3), faces
@@ -125,6 +185,7 @@ def body_contacts(surfaces: Sequence[tuple[Any, np.ndarray, np.ndarray, np.ndarr
                     queries.setdefault(f, []).append((p, near))
                     order.append((p, f, mu))
     found: dict[tuple[int, int], tuple] = {}
+    own: dict[int, np.ndarray] = {}  # outward vertex normals of the point surfaces, made when needed
     for f, asked in queries.items():
         _, V_f, F_f, _, _, test = surfaces[f]
         hit, face, bary, normal = points_inside(np.concatenate([surfaces[p][1][near] for p, near in asked]),
@@ -132,7 +193,17 @@ def body_contacts(surfaces: Sequence[tuple[Any, np.ndarray, np.ndarray, np.ndarr
         start = 0
         for p, near in asked:
             mine = (hit >= start) & (hit < start + len(near))
-            found[(p, f)] = (near[hit[mine] - start], face[mine], bary[mine], normal[mine])
+            nodes, fc, bc, nc = near[hit[mine] - start], face[mine], bary[mine], normal[mine]
+            if len(nodes):
+                _, V_p, F_p, X_p, *_ = surfaces[p]
+                if p not in own:
+                    own[p] = vertex_normals(V_p, F_p)
+                # how deep a node can be behind a face it came through: its own and the face's
+                # motion over the step (both bounded by the two surfaces' largest), and the margin
+                reach = (np.linalg.norm(V_p[nodes] - X_p[nodes], axis=1)
+                         + float(np.linalg.norm(V_f - surfaces[f][3], axis=1).max()) + 2.0 * margin)
+                fc, bc, nc = facing_faces(V_p[nodes], fc, bc, nc, V_f, F_f, own[p][nodes], reach)
+            found[(p, f)] = (nodes, fc, bc, nc)
             start += len(near)
     out = []
     for p, f, mu in order:
