@@ -471,6 +471,30 @@ def test_block_on_an_incline_sticks_or_slides_at_g_sin_minus_mu_cos(box_ops, mu)
     assert (body.points() @ n).min() > -body.constraint_tolerance
 
 
+def test_facing_faces_picks_the_face_a_node_came_through():
+    """``wsim.contact.facing_faces`` on a unit cube: a node 1 mm inside the -x face and 0.1 mm below
+    the +y face, whose own surface faces +x and +y (a cube edge pressing on the -x face), is
+    nearest the +y face; it takes the -x face, its normal and the projection on it. A node whose
+    own normal faces both faces alike (a corner coming down onto the edge) keeps the nearest; so
+    does one the step cannot have carried that deep (``reach``)."""
+    from wsim.contact import facing_faces, points_inside
+
+    cube = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    V, F = np.asarray(cube.vertices, dtype=np.float64), np.asarray(cube.faces)
+    p = np.array([[-0.499, 0.4999, 0.1], [-0.499, 0.4999, 0.1]])
+    hit, face, bary, normal = points_inside(p, V, F, 0.0, wp.get_device("cpu"))
+    assert len(hit) == 2 and np.allclose(normal, [0.0, 1.0, 0.0])  # the tie's loser: the nearest face
+    own = np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 0.0]]) / np.sqrt(2.0)
+    f2, b2, n2 = facing_faces(p, face, bary, normal, V, F, own, np.array([0.01, 0.0005]))
+    assert np.allclose(n2[0], [-1.0, 0.0, 0.0])
+    q = np.einsum("k,kd->d", b2[0], V[F[f2[0]]])
+    assert np.allclose(q, [-0.5, 0.4999, 0.1], atol=1e-9) and np.all(b2[0] >= 0.0)
+    assert np.allclose(n2[1], [0.0, 1.0, 0.0]) and f2[1] == face[1]  # 1 mm is out of its reach
+    corner = np.array([[1.0, -1.0, 1.0]]) / np.sqrt(3.0)  # faces -x and +y alike: keeps the nearest
+    f3, _, n3 = facing_faces(p[:1], face[:1], bary[:1], normal[:1], V, F, corner, np.array([0.01]))
+    assert f3[0] == face[0] and np.allclose(n3[0], [0.0, 1.0, 0.0])
+
+
 def test_batched_contact_queries_match_one_query_per_pair():
     """``wsim.contact.body_contacts`` queries each surface once with the nodes of every body near
     it; the contacts are those of one ``points_inside`` query per pair and direction, in order."""

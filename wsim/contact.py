@@ -128,8 +128,8 @@ def facing_faces(points: np.ndarray, face: np.ndarray, bary: np.ndarray, normal:
     meeting face to face have every node of the touching faces but the centre on the other's
     face edges; pressed a little into it, half of them were nearer a side face than the face they
     pressed on, and took its normal, across the blow. Their friction on that normal then held
-    the faces together as they sprang apart (the cubes stopped dead). A corner meeting an edge,
-    whose own normal faces both faces alike, keeps the nearest."""
+    the faces together as they sprang apart (the cubes stopped dead). A corner coming down onto an
+    edge, whose own normal is opposed to both faces, keeps the nearest."""
     todo = np.flatnonzero(np.einsum("ij,ij->i", normal, own) > -FACING_COS)
     if not len(todo):
         return face, bary, normal
