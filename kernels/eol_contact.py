@@ -413,6 +413,100 @@ def surface_reaction(
         wp.atomic_add(impulse, wp.mesh_get_index(mesh, 3 * f + k), b[k] * J)
 
 
+@wp.struct
+class VertexHits:
+    """Per vertex of a moving partner's surface, where it is inside this body's own surface
+    (``vertex_rows``): its row slot (-1: outside), its row coefficient c (world) and the vertex's
+    world position."""
+
+    row: wp.array(dtype=wp.int32)
+    c: wp.array(dtype=wp.vec3d)
+    point: wp.array(dtype=wp.vec3d)
+
+
+@wp.kernel
+def vertex_rows(
+    surf: ContactSurface,
+    own: wp.uint64,
+    own_closed: int,
+    points: wp.array(dtype=wp.vec3),
+    velocity: wp.array(dtype=wp.vec3d),
+    area: wp.array(dtype=wp.float64),
+    max_dist: float,
+    collider: int,
+    acc: wp.array2d(dtype=wp.float64),
+    flag: wp.array(dtype=wp.int32),
+    hits: VertexHits,
+):
+    """The other way round from ``surface_rows``: a vertex of a moving partner's surface (``points``,
+    where it is at this step) inside this body's own surface (``own``: its tracked surface in the
+    world, ``own_closed`` its inside test), so that a corner or an edge of the partner cannot sink
+    between this body's samples. The vertex's share of the partner's surface, ``area`` a_v, at the
+    nearest point of this surface (outward normal n_A; tracked face f, whose intermediate point
+    gives the row's nodes) enters the row of that point's collision cell as a sample would:
+    coefficient a_v n_A (``pushed_area`` with n_B = -n_A), right side a_v n_A . v_B - a_v depth /
+    tau, v_B the vertex's velocity; the partner receives lambda_r c at the vertex
+    (``vertex_reaction``)."""
+    i = wp.tid()
+    hits.row[i] = -1
+    p = points[i]
+    q = query_inside(own, p, max_dist, own_closed)
+    if q.result and q.sign < 0.0:
+        closest = wp.mesh_eval_position(own, q.face, q.u, q.v)
+        n = vec3d_of(wp.mesh_eval_face_normal(own, q.face))
+        tri = surf.faces[q.face]
+        b = wp.vec3d(wp.float64(q.u), wp.float64(q.v), wp.float64(1.0) - wp.float64(q.u) - wp.float64(q.v))
+        yp = b[0] * surf.y[tri[0]] + b[1] * surf.y[tri[1]] + b[2] * surf.y[tri[2]]
+        an = area[i] * n
+        cn = -n
+        hits.row[i] = add_sample(acc, flag, surf, collider, yp, an, cn, wp.float64(wp.length(closest - p)), velocity[i])
+        hits.c[i] = pushed_area(an, cn)
+        hits.point[i] = vec3d_of(p)
+
+
+@wp.kernel
+def vertex_reaction(
+    hits: VertexHits,
+    row_of_slot: wp.array(dtype=wp.int32),
+    lam: wp.array2d(dtype=wp.float64),
+    dt: wp.float64,
+    impulse: wp.array(dtype=wp.vec3d),
+    weight: wp.array(dtype=wp.float64),
+):
+    """The partner's share of a vertex row entry (``vertex_rows``): +lambda_r c at the vertex, and
+    |lambda_r c| into ``weight`` (how the friction's reaction is spread)."""
+    i = wp.tid()
+    slot = hits.row[i]
+    if slot < 0:
+        return
+    r = row_of_slot[slot]
+    if r < 0:
+        return
+    J = (lam[r, 0] + dt * lam[r, 1]) * hits.c[i]
+    wp.atomic_add(impulse, i, J)
+    wp.atomic_add(weight, i, wp.length(J))
+
+
+@wp.kernel
+def vertex_wrenches(
+    hits: VertexHits,
+    row_of_slot: wp.array(dtype=wp.int32),
+    com: wp.vec3d,
+    wrench: wp.array2d(dtype=wp.vec3d),
+):
+    """``partner_wrenches`` for the vertex row entries: c at the vertex."""
+    i = wp.tid()
+    slot = hits.row[i]
+    if slot < 0:
+        return
+    r = row_of_slot[slot]
+    if r < 0:
+        return
+    c = hits.c[i]
+    wp.atomic_add(wrench, r, 0, c)
+    wp.atomic_add(wrench, r, 1, wp.cross(hits.point[i] - com, c))
+
+
 @wp.kernel
 def compact_rows(
     acc: wp.array2d(dtype=wp.float64),

@@ -100,6 +100,8 @@ class _MovingSurface:
     reach: float = 0.0
     closed: int = 1  # the inside test of ``kernels.mesh.query_inside`` (``wsim.mesh.inside_test``)
     hits: Any = None  # ``kernels.eol_contact.SurfaceHits`` of this body's contact samples
+    vhits: Any = None  # ``kernels.eol_contact.VertexHits`` of its vertices inside this body's surface
+    varea: wp.array | None = None  # its vertices' lumped areas [m^2] (``vertex_rows``)
     rigid: tuple | None = None  # (1 / M, I^-1 (world), com at the end, mean shift over the advance): it yields
     wrench: wp.array | None = None  # per row, what a unit multiplier does to it (``partner_wrenches``)
     push: wp.array | None = None  # a step's reaction as momentum and angular momentum (``partner_push``)
@@ -978,6 +980,13 @@ class EolBody(VertexImpulses, Body):
                             np.asarray(com, dtype=np.float64), (ms.p1_host - ms.p0_host).mean(axis=0))
             both = np.concatenate([p0, np.asarray(p1)])
             ms.reach = 2.0 * float(np.linalg.norm(np.ptp(both, axis=0))) + self.grid.h
+            if ms.vhits is None:  # per partner vertex: its row, coefficient and position (``vertex_rows``)
+                ms.vhits = kc.VertexHits()
+                ms.vhits.row = wp.full(len(p0), -1, dtype=wp.int32, device=d)
+                ms.vhits.c = wp.zeros(len(p0), dtype=wp.vec3d, device=d)
+                ms.vhits.point = wp.zeros(len(p0), dtype=wp.vec3d, device=d)
+                ms.varea = wp.zeros(len(p0), dtype=wp.float64, device=d)
+            ms.varea.assign(wmesh.vertex_areas(p0, faces))
             moving.append(ms)
         self._moving = moving
         self._contact_slots(len(self._colliders) + len(moving))
@@ -1401,6 +1410,12 @@ class EolBody(VertexImpulses, Body):
             self._launch(kc.surface_rows, surf.sample_face.shape[0],
                       [surf, ms.mesh.id, ms.closed, ms.velocity, float(ms.reach), len(self._colliders) + k,
                               self._row_acc, self._row_flag, ms.hits])
+        if self._moving:  # and their vertices inside this body's surface (vertex-face both ways)
+            self._place_world_mesh()
+            for k, ms in enumerate(self._moving):
+                self._launch(kc.vertex_rows, ms.cur.shape[0],
+                             [surf, self._world_mesh.id, self._world_closed, ms.cur, ms.velocity, ms.varea,
+                              float(ms.reach), len(self._colliders) + k, self._row_acc, self._row_flag, ms.vhits])
 
     def _place_surface(self) -> None:
         """The contact samples' Lagrangian map and axes at the current state."""
@@ -1520,6 +1535,8 @@ class EolBody(VertexImpulses, Body):
             self._launch(kc.surface_reaction, self._surface.sample_face.shape[0],
                          [self._surface, ms.mesh.id, ms.hits, self._row_of_slot, self._lam, wp.float64(dt),
                           ms.step_impulse, ms.step_weight])
+            self._launch(kc.vertex_reaction, ms.p0.shape[0],
+                         [ms.vhits, self._row_of_slot, self._lam, wp.float64(dt), ms.step_impulse, ms.step_weight])
             self._launch(kc.accumulate, ms.p0.shape[0], [ms.impulse, ms.step_impulse])
             if ms.rigid is not None:  # the next step's rows see it yield
                 if ms.push is None:
@@ -1592,6 +1609,8 @@ class EolBody(VertexImpulses, Body):
             inv_M, inv_I, _, _ = ms.rigid
             self._launch(kc.partner_wrenches, P, [self._surface, ms.mesh.id, ms.hits, self._row_of_slot,
                                                   self._partner_com(ms), ms.wrench])
+            self._launch(kc.vertex_wrenches, ms.p0.shape[0], [ms.vhits, self._row_of_slot, self._partner_com(ms),
+                                                               ms.wrench])
             self._launch(kc.partner_compliance, (m, m), [ms.wrench, wp.float64(inv_M), _mat(inv_I), m, self._system])
 
     def contact_rows(self) -> ContactRows | None:

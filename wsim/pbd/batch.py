@@ -64,6 +64,9 @@ class PbdBatch:
     _prepare_layout = _Body._prepare_layout
     _upload_frame_inputs = _Body._upload_frame_inputs
     _frame = _Body.advance  # layout, inputs and the recorded CUDA graph, as for one body
+
+    def _take_push(self) -> None:
+        """The members took their pushes in ``advance`` (``PbdBody._take_push``)."""
     del _Body
 
     def __init__(self, bodies: Sequence[PbdBody]) -> None:
@@ -197,6 +200,8 @@ class PbdBatch:
     def advance(self, t0: float, t1: float) -> None:
         """Every member from t0 to t1: the batch's frame (recorded as one CUDA graph on a GPU), or
         each member on its own in a frame where one touches something (``steps_together``)."""
+        for b in self.bodies:  # what EoL bodies pushed them with (``PbdBody.add_vertex_impulses``)
+            b._take_push()
         if not self.steps_together():
             for b in self.bodies:
                 b.advance(t0, t1)

@@ -20,7 +20,7 @@ updates in the same order as one launch per colour.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
@@ -51,6 +51,10 @@ class PbdState:
 
     x: wp.array
     v: wp.array
+    # momentum an EoL body pushed the surface particles with, to be taken at the next step's start
+    # (``add_vertex_impulses``) [N s] (V, 3), and all it has handed so far [N s] (3,)
+    push: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    coupling_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
 @dataclass
@@ -480,6 +484,55 @@ class PbdBody(Body):
         m, _, v = self._free_state()
         return 0.5 * float((m * (v * v).sum(1)).sum())
 
+    # ---------------------------------------------------------------- pushed by EoL bodies
+    @property
+    def mass(self) -> float:
+        """Mass of the free particles [kg] (what a push moves)."""
+        self._require_bound()
+        return float(self.masses[~self._kinematic_mask].sum())
+
+    def world_inertia(self) -> np.ndarray:
+        """(3, 3) inertia tensor of the free particles about their centre of mass [kg m^2] (world)."""
+        m, x, _ = self._free_state()
+        r = x - (m[:, None] * x).sum(0) / m.sum()
+        return (m * (r * r).sum(1)).sum() * np.eye(3) - (m[:, None] * r).T @ r
+
+    def add_vertex_impulses(self, impulses: Any, duration: float) -> None:
+        """Deliver momentum ``impulses`` [N s] (V, 3) per surface vertex (world axes): the World
+        hands a PBD body what an EoL body pushed it with over the last coupling interval (the EoL
+        QP takes the PBD body's rigid give, ``EolBody.set_moving_surfaces``). It is taken at the
+        start of the body's next step, each surface particle's velocity changing by J / m at once
+        (pinned and driven particles take none), so that the velocities read between steps are
+        those the step ended with (taken at once, a box resting on an EoL box read g h = 9.8 mm/s
+        upward at 1 ms intervals). ``duration`` [s] is that interval (checked, as for the other
+        methods)."""
+        self._require_bound()
+        J = np.asarray(impulses, dtype=np.float64)
+        n = self.model.n_surface
+        if J.shape != (n, 3) or not np.all(np.isfinite(J)):
+            raise InvalidParameter(f"body '{self.name}': vertex impulses must be finite, shape ({n}, 3); got {J.shape}")
+        if not (duration > 0.0):
+            raise InvalidParameter(f"body '{self.name}': impulse duration must be > 0 s, got {duration}")
+        J = np.where(~self._kinematic_mask[:n, None], J, 0.0)
+        self.state.push = self.state.push + J
+        self.state.coupling_impulse = self.state.coupling_impulse + J.sum(axis=0)
+
+    def _take_push(self) -> None:
+        """Add the pending push (``add_vertex_impulses``) to the surface particles' velocities."""
+        st = self.state
+        if st is None or not np.any(st.push):
+            return
+        n = self.model.n_surface
+        v = st.v.numpy()
+        v[:n] += (st.push / self.masses[:n, None]).astype(np.float32)
+        st.v.assign(v)
+        st.push = np.zeros_like(st.push)
+
+    @property
+    def coupling_impulse(self) -> np.ndarray:
+        """Momentum handed to the body by ``add_vertex_impulses`` so far [N s] (world)."""
+        return np.zeros(3) if self.state is None else self.state.coupling_impulse.copy()
+
     # ---------------------------------------------------------------- set-up
     def signature(self) -> dict:
         return {**super().signature(), "particles": self.model.n_particles, "substeps": self.substeps, "dt": self.dt,
@@ -517,7 +570,8 @@ class PbdBody(Body):
         with wp.ScopedDevice(device):
             # in place on restore (set_state), so a recorded CUDA graph keeps pointing at them
             self.state = PbdState(x=wp.array(self._rest.astype(np.float32), dtype=wp.vec3),
-                                  v=wp.array(v0.astype(np.float32), dtype=wp.vec3))
+                                  v=wp.array(v0.astype(np.float32), dtype=wp.vec3),
+                                  push=np.zeros((m.n_surface, 3)), coupling_impulse=np.zeros(3))
             self.x_prev = wp.zeros(n, dtype=wp.vec3)
             self.x_pred = wp.zeros(n, dtype=wp.vec3)
             self.dx = wp.zeros(n, dtype=wp.vec3)  # corrections of the current substep (x = x_pred + dx)
@@ -674,6 +728,7 @@ class PbdBody(Body):
         return batches(bodies)
 
     def advance(self, t0: float, t1: float) -> None:
+        self._take_push()
         # (f + 1)/fps - f/fps differs from frame to frame in its last bits; round it so the
         # per-frame buffers and the CUDA graph (which bakes h in) are built once, not every frame
         frame_dt = round(t1 - t0, 12)

@@ -147,6 +147,8 @@ def advance_together(bodies: Sequence[PbdBody], t0: float, t1: float, graphs: di
     """Advance PBD bodies that may touch from t0 to t1 (see the module docstring). ``graphs`` is
     where the caller keeps the recorded lockstep frame and the broad phase's layout between calls
     (None: nothing kept, no frame recorded)."""
+    for b in bodies:  # what EoL bodies pushed them with (``PbdBody.add_vertex_impulses``)
+        b._take_push()
     frame_dt = round(t1 - t0, 12)
     pairs = candidate_pairs(bodies, frame_dt, graphs)
     touching = {id(b) for pair in pairs for b in pair}
