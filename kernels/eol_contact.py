@@ -464,6 +464,15 @@ def vertex_rows(
         hits.point[i] = vec3d_of(p)
 
 
+@wp.func
+def vertex_packed_row(hits: VertexHits, row_of_slot: wp.array(dtype=wp.int32), i: int) -> int:
+    """The packed row of partner vertex i's entry (``vertex_rows``), -1 if none."""
+    slot = hits.row[i]
+    if slot < 0:
+        return -1
+    return row_of_slot[slot]
+
+
 @wp.kernel
 def vertex_reaction(
     hits: VertexHits,
@@ -476,10 +485,7 @@ def vertex_reaction(
     """The partner's share of a vertex row entry (``vertex_rows``): +lambda_r c at the vertex, and
     |lambda_r c| into ``weight`` (how the friction's reaction is spread)."""
     i = wp.tid()
-    slot = hits.row[i]
-    if slot < 0:
-        return
-    r = row_of_slot[slot]
+    r = vertex_packed_row(hits, row_of_slot, i)
     if r < 0:
         return
     J = (lam[r, 0] + dt * lam[r, 1]) * hits.c[i]
@@ -496,10 +502,7 @@ def vertex_wrenches(
 ):
     """``partner_wrenches`` for the vertex row entries: c at the vertex."""
     i = wp.tid()
-    slot = hits.row[i]
-    if slot < 0:
-        return
-    r = row_of_slot[slot]
+    r = vertex_packed_row(hits, row_of_slot, i)
     if r < 0:
         return
     c = hits.c[i]
