@@ -341,9 +341,10 @@ def surface_rows(
 
 
 @wp.func
-def hit_packed_row(hits: SurfaceHits, row_of_slot: wp.array(dtype=wp.int32), i: int) -> int:
-    """The packed row of sample i's hit on a partner's surface (``surface_rows``), -1 if none."""
-    slot = hits.row[i]
+def packed_row(row: wp.array(dtype=wp.int32), row_of_slot: wp.array(dtype=wp.int32), i: int) -> int:
+    """The packed row of entry i's row slot ``row[i]`` (a sample's hit on a partner's surface,
+    ``surface_rows``, or a partner vertex's, ``vertex_rows``), -1 if none."""
+    slot = row[i]
     if slot < 0:
         return -1
     return row_of_slot[slot]
@@ -377,7 +378,7 @@ def surface_reaction(
     how the friction's reaction is spread). ``lam`` (lambda_0, lambda_1) is per packed row; the
     step's multiplier is lambda_0 + dt lambda_1."""
     i = wp.tid()
-    r = hit_packed_row(hits, row_of_slot, i)
+    r = packed_row(hits.row, row_of_slot, i)
     if r < 0:
         return
     l = lam[r, 0] + dt * lam[r, 1]
@@ -464,15 +465,6 @@ def vertex_rows(
         hits.point[i] = vec3d_of(p)
 
 
-@wp.func
-def vertex_packed_row(hits: VertexHits, row_of_slot: wp.array(dtype=wp.int32), i: int) -> int:
-    """The packed row of partner vertex i's entry (``vertex_rows``), -1 if none."""
-    slot = hits.row[i]
-    if slot < 0:
-        return -1
-    return row_of_slot[slot]
-
-
 @wp.kernel
 def vertex_reaction(
     hits: VertexHits,
@@ -485,7 +477,7 @@ def vertex_reaction(
     """The partner's share of a vertex row entry (``vertex_rows``): +lambda_r c at the vertex, and
     |lambda_r c| into ``weight`` (how the friction's reaction is spread)."""
     i = wp.tid()
-    r = vertex_packed_row(hits, row_of_slot, i)
+    r = packed_row(hits.row, row_of_slot, i)
     if r < 0:
         return
     J = (lam[r, 0] + dt * lam[r, 1]) * hits.c[i]
@@ -502,7 +494,7 @@ def vertex_wrenches(
 ):
     """``partner_wrenches`` for the vertex row entries: c at the vertex."""
     i = wp.tid()
-    r = vertex_packed_row(hits, row_of_slot, i)
+    r = packed_row(hits.row, row_of_slot, i)
     if r < 0:
         return
     c = hits.c[i]
@@ -753,7 +745,7 @@ def partner_wrenches(
     takes the partner's velocity (``surface_rows``). ``wrench`` is zeroed on its first m rows
     beforehand."""
     i = wp.tid()
-    r = hit_packed_row(hits, row_of_slot, i)
+    r = packed_row(hits.row, row_of_slot, i)
     if r < 0:
         return
     f = hits.face[i]
