@@ -102,6 +102,8 @@ class _MovingSurface:
     hits: Any = None  # ``kernels.eol_contact.SurfaceHits`` of this body's contact samples
     vhits: Any = None  # ``kernels.eol_contact.VertexHits`` of its vertices inside this body's surface
     varea: wp.array | None = None  # its vertices' lumped areas [m^2] (``vertex_rows``)
+    box: tuple | None = None  # (min, max) of its vertices over the advance (world)
+    vactive: bool = False  # whether this step's ``vertex_rows`` ran for it (its ``vhits`` are current)
     rigid: tuple | None = None  # (1 / M, I^-1 (world), com at the end, mean shift over the advance): it yields
     wrench: wp.array | None = None  # per row, what a unit multiplier does to it (``partner_wrenches``)
     push: wp.array | None = None  # a step's reaction as momentum and angular momentum (``partner_push``)
@@ -987,6 +989,7 @@ class EolBody(VertexImpulses, Body):
                 ms.vhits.point = wp.zeros(len(p0), dtype=wp.vec3d, device=d)
                 ms.varea = wp.zeros(len(p0), dtype=wp.float64, device=d)
             ms.varea.assign(wmesh.vertex_areas(p0, faces))
+            ms.box = (both.min(axis=0), both.max(axis=0))
             moving.append(ms)
         self._moving = moving
         self._contact_slots(len(self._colliders) + len(moving))
@@ -1410,12 +1413,28 @@ class EolBody(VertexImpulses, Body):
             self._launch(kc.surface_rows, surf.sample_face.shape[0],
                       [surf, ms.mesh.id, ms.closed, ms.velocity, float(ms.reach), len(self._colliders) + k,
                               self._row_acc, self._row_flag, ms.hits])
-        if self._moving:  # and their vertices inside this body's surface (vertex-face both ways)
-            self._place_world_mesh()
-            for k, ms in enumerate(self._moving):
+        # and their vertices inside this body's surface (vertex-face both ways), for the surfaces
+        # whose box meets the grid's (the queries and the mesh refit cost a sixth of the showcase's
+        # CPU time when run for every surface every step)
+        lo, hi = self._grid_box() if self._moving else (None, None)
+        placed = False
+        for k, ms in enumerate(self._moving):
+            ms.vactive = bool(np.all(ms.box[1] >= lo) and np.all(ms.box[0] <= hi))
+            if ms.vactive:
+                if not placed:
+                    self._place_world_mesh()
+                    placed = True
                 self._launch(kc.vertex_rows, ms.cur.shape[0],
                              [surf, self._world_mesh.id, self._world_closed, ms.cur, ms.velocity, ms.varea,
                               float(ms.reach), len(self._colliders) + k, self._row_acc, self._row_flag, ms.vhits])
+
+    def _grid_box(self) -> tuple[np.ndarray, np.ndarray]:
+        """(min, max) of the grid's corners in the world (the body and its padding lie inside)."""
+        g = self.grid
+        corners = g.origin + g.h * np.array([[i, j, k] for i in (0, g.cells[0]) for j in (0, g.cells[1])
+                                             for k in (0, g.cells[2])])
+        x = corners @ self.state.F.T + self.state.T
+        return x.min(axis=0), x.max(axis=0)
 
     def _place_surface(self) -> None:
         """The contact samples' Lagrangian map and axes at the current state."""
@@ -1535,8 +1554,9 @@ class EolBody(VertexImpulses, Body):
             self._launch(kc.surface_reaction, self._surface.sample_face.shape[0],
                          [self._surface, ms.mesh.id, ms.hits, self._row_of_slot, self._lam, wp.float64(dt),
                           ms.step_impulse, ms.step_weight])
-            self._launch(kc.vertex_reaction, ms.p0.shape[0],
-                         [ms.vhits, self._row_of_slot, self._lam, wp.float64(dt), ms.step_impulse, ms.step_weight])
+            if ms.vactive:
+                self._launch(kc.vertex_reaction, ms.p0.shape[0],
+                             [ms.vhits, self._row_of_slot, self._lam, wp.float64(dt), ms.step_impulse, ms.step_weight])
             self._launch(kc.accumulate, ms.p0.shape[0], [ms.impulse, ms.step_impulse])
             if ms.rigid is not None:  # the next step's rows see it yield
                 if ms.push is None:
@@ -1609,8 +1629,9 @@ class EolBody(VertexImpulses, Body):
             inv_M, inv_I, _, _ = ms.rigid
             self._launch(kc.partner_wrenches, P, [self._surface, ms.mesh.id, ms.hits, self._row_of_slot,
                                                   self._partner_com(ms), ms.wrench])
-            self._launch(kc.vertex_wrenches, ms.p0.shape[0], [ms.vhits, self._row_of_slot, self._partner_com(ms),
-                                                               ms.wrench])
+            if ms.vactive:
+                self._launch(kc.vertex_wrenches, ms.p0.shape[0], [ms.vhits, self._row_of_slot, self._partner_com(ms),
+                                                                   ms.wrench])
             self._launch(kc.partner_compliance, (m, m), [ms.wrench, wp.float64(inv_M), _mat(inv_I), m, self._system])
 
     def contact_rows(self) -> ContactRows | None:
@@ -1706,11 +1727,7 @@ def _rows_between(bodies: Sequence[EolBody], keys: Sequence[int], works: list[_S
     for b in bodies:
         b._ensure_surface()
         b._place_surface()
-        g = b.grid
-        corners = g.origin + g.h * np.array([[i, j, k] for i in (0, g.cells[0]) for j in (0, g.cells[1])
-                                             for k in (0, g.cells[2])])
-        x = corners @ b.state.F.T + b.state.T
-        boxes.append((x.min(axis=0), x.max(axis=0)))
+        boxes.append(b._grid_box())
     found = [(i, j, pair_friction(bodies[i].friction, bodies[j].friction))
              for i in range(len(bodies)) for j in range(i + 1, len(bodies))
              if np.all(boxes[i][1] >= boxes[j][0]) and np.all(boxes[j][1] >= boxes[i][0])]
