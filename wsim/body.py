@@ -179,6 +179,17 @@ class Body(ABC):
         return t1
 
 
+def checked_vertex_impulses(name: str, impulses: Any, vertices: int, duration: float) -> np.ndarray:
+    """``add_vertex_impulses``' arguments checked, naming the body: finite (vertices, 3) impulses
+    (float64) and a positive duration."""
+    J = np.asarray(impulses, dtype=np.float64)
+    if J.shape != (vertices, 3) or not np.all(np.isfinite(J)):
+        raise InvalidParameter(f"body '{name}': vertex impulses must be finite, shape ({vertices}, 3); got {J.shape}")
+    if not (duration > 0.0):
+        raise InvalidParameter(f"body '{name}': impulse duration must be > 0 s, got {duration}")
+    return J
+
+
 class VertexImpulses:
     """What a body needs to be pushed by bodies of another method (BEM and EoL; issue 18):
     ``add_vertex_impulses`` keeps the push in the state (``coupling_force`` (V, 3) [N],
@@ -207,12 +218,7 @@ class VertexImpulses:
         earlier call. The World hands a body this way what bodies of other methods pushed it with
         over the last coupling interval (explicit two-way coupling)."""
         self._require_bound()
-        J = np.asarray(impulses, dtype=np.float64)
-        V = self._coupling_vertices()
-        if J.shape != (V, 3) or not np.all(np.isfinite(J)):
-            raise InvalidParameter(f"body '{self.name}': vertex impulses must be finite, shape ({V}, 3); got {J.shape}")
-        if not (duration > 0.0):
-            raise InvalidParameter(f"body '{self.name}': impulse duration must be > 0 s, got {duration}")
+        J = checked_vertex_impulses(self.name, impulses, self._coupling_vertices(), duration)
         st = self.state
         st.coupling_force = J / duration
         st.coupling_until = self._coupling_time() + duration

@@ -21,7 +21,7 @@ import numpy as np
 import warp as wp
 
 from wsim.constraints import PointRefs
-from wsim.mesh.surface import vertex_normals
+from wsim.mesh.surface import face_normals, vertex_normals
 from wsim.kernels import mesh as km
 
 #: friction of a body that gives none, for contact between bodies (the larger of the two is used)
@@ -105,7 +105,7 @@ FACING_MARGIN = 0.1
 
 
 def _barycentric(q: np.ndarray, tri: np.ndarray) -> np.ndarray:
-    """(n, 3) barycentric weights of point q (3,) projected on each triangle (n, 3, 3)."""
+    """(n, 3) barycentric weights of points q (n, 3) (or one, (3,)) projected on triangles (n, 3, 3)."""
     e0, e1, d = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], q - tri[:, 0]
     d00, d01, d11 = (e0 * e0).sum(1), (e0 * e1).sum(1), (e1 * e1).sum(1)
     d20, d21 = (d * e0).sum(1), (d * e1).sum(1)
@@ -134,16 +134,14 @@ def facing_faces(points: np.ndarray, face: np.ndarray, bary: np.ndarray, normal:
     if not len(todo):
         return face, bary, normal
     face, bary, normal = face.copy(), bary.copy(), normal.copy()
-    area = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-    unit = area / np.maximum(np.linalg.norm(area, axis=1, keepdims=True), 1e-300)
+    unit = face_normals(V, F)
     for i in todo:
         around = np.flatnonzero(np.isin(F, F[face[i]]).any(axis=1))
         behind = -np.einsum("ij,ij->i", unit[around], points[i] - V[F[around, 0]])  # depth behind each plane
         # the point's projection on each face's plane in that face's barycentric weights: only a face
         # that holds it is a candidate (a point off the face it pushes on would carry the pair a net
         # moment, (P_a - P_b) x f)
-        q = points[i] - behind[:, None] * -unit[around]
-        w = np.stack([_barycentric(q[j], V[F[c]][None])[0] for j, c in enumerate(around)])
+        w = _barycentric(points[i] + behind[:, None] * unit[around], V[F[around]])
         ok = (behind >= 0.0) & (behind <= reach[i]) & (w.min(axis=1) >= -1e-6)
         if not ok.any():
             continue

@@ -173,6 +173,13 @@ def face_areas(vertices: Any, faces: Any) -> np.ndarray:
     return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
 
 
+def face_normals(vertices: Any, faces: Any) -> np.ndarray:
+    """(M, 3) unit outward normals of the triangles (zero for a degenerate one)."""
+    a, b, c = _corners(np.asarray(vertices, dtype=np.float64), np.asarray(faces))
+    n = np.cross(b - a, c - a)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+
+
 def vertex_normals(vertices: Any, faces: Any) -> np.ndarray:
     """(V, 3) unit area-weighted vertex normals (the sum of the adjacent faces' area vectors)."""
     v = np.asarray(vertices, dtype=np.float64)

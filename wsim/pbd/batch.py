@@ -63,10 +63,7 @@ class PbdBatch:
     _moment_blocks = _Body._moment_blocks
     _prepare_layout = _Body._prepare_layout
     _upload_frame_inputs = _Body._upload_frame_inputs
-    _frame = _Body.advance  # layout, inputs and the recorded CUDA graph, as for one body
-
-    def _take_push(self) -> None:
-        """The members took their pushes in ``advance`` (``PbdBody._take_push``)."""
+    _frame = _Body._advance_frame  # layout, inputs and the recorded CUDA graph, as for one body
     del _Body
 
     def __init__(self, bodies: Sequence[PbdBody]) -> None:

@@ -27,7 +27,7 @@ import numpy as np
 import warp as wp
 
 from wsim import mesh as wmesh
-from wsim.body import Body
+from wsim.body import Body, checked_vertex_impulses
 from wsim.cache import OperatorCache
 from wsim.colliders import Surfaces
 from wsim.errors import InvalidParameter, SimulationDiverged
@@ -507,12 +507,8 @@ class PbdBody(Body):
         upward at 1 ms intervals). ``duration`` [s] is that interval (checked, as for the other
         methods)."""
         self._require_bound()
-        J = np.asarray(impulses, dtype=np.float64)
         n = self.model.n_surface
-        if J.shape != (n, 3) or not np.all(np.isfinite(J)):
-            raise InvalidParameter(f"body '{self.name}': vertex impulses must be finite, shape ({n}, 3); got {J.shape}")
-        if not (duration > 0.0):
-            raise InvalidParameter(f"body '{self.name}': impulse duration must be > 0 s, got {duration}")
+        J = checked_vertex_impulses(self.name, impulses, n, duration)
         J = np.where(~self._kinematic_mask[:n, None], J, 0.0)
         self.state.push = self.state.push + J
         self.state.coupling_impulse = self.state.coupling_impulse + J.sum(axis=0)
@@ -729,6 +725,10 @@ class PbdBody(Body):
 
     def advance(self, t0: float, t1: float) -> None:
         self._take_push()
+        self._advance_frame(t0, t1)
+
+    def _advance_frame(self, t0: float, t1: float) -> None:
+        """The frame's substeps (a ``PbdBatch`` steps its members with it too)."""
         # (f + 1)/fps - f/fps differs from frame to frame in its last bits; round it so the
         # per-frame buffers and the CUDA graph (which bakes h in) are built once, not every frame
         frame_dt = round(t1 - t0, 12)
