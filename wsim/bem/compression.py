@@ -237,9 +237,11 @@ def _largest(coeffs: np.ndarray, keep: int) -> np.ndarray:
     return np.argpartition(flat, flat.size - keep)[flat.size - keep:]
 
 
-def _from_coefficients(coeffs: np.ndarray, n: int, perm: np.ndarray, keep: int, norm: float) -> CompressedMatrix:
+def _from_coefficients(coeffs: np.ndarray, n: int, perm: np.ndarray, keep: int, norm: float,
+                       order: np.ndarray | None = None) -> CompressedMatrix:
+    """The ``keep`` largest coefficients (the first ``keep`` of ``order``, their ranking, if given)."""
     size = coeffs.shape[0]
-    sel = _largest(coeffs, keep)
+    sel = _largest(coeffs, keep) if order is None else order[: int(min(max(keep, 1), order.size))]
     r, c = np.divmod(sel, size)
     vals = coeffs.ravel()[sel]
     C = sp.csr_matrix((vals, (r, c)), shape=(size, size))
@@ -263,25 +265,41 @@ class HostCoefficients:
         self.norm = float(np.linalg.norm(A))
         self.levels = (1, self.coeffs.size)
         self._order: np.ndarray | None = None
-        self._full: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # id -> (X_hat, C X_hat) per tuning block
+        # id -> (X_hat, the dropped products at every CHECKPOINTS-th level) per tuning block
+        self._sums: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    CHECKPOINTS = 64  # stored dropped products per tuning block: a level costs 1/64 of a full product
 
     def level_for(self, keep: int) -> int:
         return int(min(max(keep, 1), self.coeffs.size))
 
+    def _product(self, lo: int, hi: int, X_hat: np.ndarray) -> np.ndarray:
+        """C_S X_hat for S the coefficients ranked lo..hi-1 (largest first)."""
+        r, c = np.divmod(self._order[lo:hi], self.size)
+        return sp.csr_matrix((self.coeffs[r, c], (r, c)), shape=self.coeffs.shape) @ X_hat
+
     def dropped(self, level: int, X_hat: np.ndarray) -> np.ndarray:
-        """(C - C_kept) X_hat for the coefficients kept at ``level``."""
+        """(C - C_kept) X_hat for the coefficients kept at ``level``: the dropped ones' product,
+        the stored one of the nearest checkpoint level at or above ``level`` plus the few ranked
+        between. A bisection of ``choose_keep`` asks for ~20 levels per target and tightens the
+        target several times; each from scratch was a product with all kept coefficients (a
+        386-node body's 12 history matrices took 108 s of tuning on one CPU core). The checkpoints
+        cost one pass over the coefficients per tuning block, summed from the smallest up."""
+        total = self.coeffs.size
         if self._order is None:
             self._order = np.argsort(np.abs(self.coeffs).ravel())[::-1]
-        found = self._full.get(id(X_hat))
+        step = -(-total // self.CHECKPOINTS)
+        found = self._sums.get(id(X_hat))
         if found is None or found[0] is not X_hat:  # the entry holds X_hat: its id is not reused while cached
-            found = self._full[id(X_hat)] = (X_hat, self.coeffs @ X_hat)
-        full = found[1]
-        r, c = np.divmod(self._order[:level], self.size)
-        kept = sp.csr_matrix((self.coeffs[r, c], (r, c)), shape=self.coeffs.shape)
-        return full - kept @ X_hat
+            sums = np.zeros((self.CHECKPOINTS + 1, self.size, X_hat.shape[1]))
+            for j in range(self.CHECKPOINTS - 1, -1, -1):  # sums[j]: the product of ranks j step .. total
+                sums[j] = sums[j + 1] + self._product(j * step, min((j + 1) * step, total), X_hat)
+            found = self._sums[id(X_hat)] = (X_hat, sums)
+        j = min(-(-level // step), self.CHECKPOINTS)
+        return found[1][j] + self._product(level, min(j * step, total), X_hat)
 
     def extract(self, level: int) -> CompressedMatrix:
-        return _from_coefficients(self.coeffs, self.n, self.perm, level, self.norm)
+        return _from_coefficients(self.coeffs, self.n, self.perm, level, self.norm, self._order)
 
 
 def coefficients(A: np.ndarray, perm: np.ndarray, device=None, reuse=None):
