@@ -39,6 +39,31 @@ def _smooth_fields(ops, k: int, seed: int) -> np.ndarray:
     return smooth_fields(ops.surface.nodes, k, seed)
 
 
+def test_dropped_products_from_checkpoints_equal_the_direct_product() -> None:
+    """``choose_keep``'s bisection reads (C - C_kept) X from stored checkpoint sums plus the
+    coefficients ranked between (``HostCoefficients.dropped``): at every level, checkpoints and
+    the ends included, it equals the product with the dropped coefficients to round-off, and
+    ``extract`` keeps the same largest coefficients as ``compress``."""
+    import scipy.sparse as sp
+
+    from wsim.bem.compression import HostCoefficients
+
+    rng = np.random.default_rng(3)
+    A = rng.standard_normal((40, 40))
+    coef = HostCoefficients(A, rng.permutation(40))
+    X = rng.standard_normal((coef.size, 4))
+    total = coef.coeffs.size
+    step = -(-total // coef.CHECKPOINTS)
+    order = np.argsort(np.abs(coef.coeffs).ravel())[::-1]
+    for level in (1, 2, step - 1, step, step + 1, 7 * step + 5, total - 1, total):
+        r, c = np.divmod(order[level:], coef.size)
+        want = sp.csr_matrix((coef.coeffs[r, c], (r, c)), shape=coef.coeffs.shape) @ X
+        assert np.abs(coef.dropped(level, X) - want).max() <= 1e-12 * np.abs(coef.coeffs).sum()
+    kept = coef.extract(300)
+    assert kept.kept == 300
+    assert np.allclose(kept.C.toarray(), compress(A, coef.perm, keep=300).C.toarray())
+
+
 def test_haar_is_orthonormal_with_sparse_basis_columns() -> None:
     rng = np.random.default_rng(0)
     x = rng.standard_normal((64, 3))
