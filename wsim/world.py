@@ -211,17 +211,20 @@ class World:
             self._eol = [b for b in self.bodies if hasattr(b, "advance_group")] if self.body_contact else []
             eol = {id(b) for b in self._eol}
             pbd = {id(b) for b in self.bodies if hasattr(b, "advance_together")}
-            self._eol_first = not _eol_pushes_pbd([b for b in self.bodies if id(b) in pbd], self._eol)
+            eol_pushes = _eol_pushes_pbd([b for b in self.bodies if id(b) in pbd], self._eol)
+            self._eol_first = not eol_pushes  # the pushed of the two methods steps first
             self._pushed = [b for b in self.bodies if hasattr(b, "add_vertex_impulses")
-                            and not (id(b) in pbd and self._eol_first)] if self.body_contact else []
+                            and (id(b) not in pbd or eol_pushes)] if self.body_contact else []
             pushers = [b for b in self.bodies if hasattr(b, "set_moving_surfaces")] if self._pushed else []
 
             def pushes(p: Body, b: Body) -> bool:
                 if b is p or (id(p) in eol and id(b) in eol) or (id(p) in pbd and id(b) in pbd):
                     return False
                 if id(p) in pbd and id(b) in eol:
-                    return self._eol_first
-                return not (id(p) in eol and id(b) in pbd) or not self._eol_first
+                    return not eol_pushes
+                if id(p) in eol and id(b) in pbd:
+                    return eol_pushes
+                return True  # a BEM target: every pusher pushes it
 
             self._targets = {id(p): [b for b in self._pushed if pushes(p, b)] for p in pushers}
             self._pushers = [p for p in pushers if self._targets[id(p)] and id(p) not in eol]  # PBD
