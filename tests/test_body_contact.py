@@ -999,6 +999,31 @@ def test_eol_box_rests_on_a_bem_cube_on_the_ground(box_ops):
     assert -cube.coupling_impulse[1] == pytest.approx(top.mass * G * w.time, rel=1e-3)
 
 
+def test_eol_box_of_the_cubes_mass_rests_on_it(box_ops):
+    """An 8 kg EoL box (0.2 m, E = 1e6 Pa, the BEM cube's material) set on the 8 kg BEM cube on the
+    ground, BEM dt = 2 ms (one BEM step a coupling interval): both come to rest, mean speeds under
+    1 mm/s over the last half second, and neither sinks into the other (deepest vertex under
+    0.5 mm). With the cube's rigid give alone in the EoL QP the pair kept shaking in the
+    exchange's period-two mode, the push alternating around the weight each interval (an
+    independent check at 8 cells: 12-13 mm/s; here 3.9 and 1.6 mm/s, 0.73 and 0.78 mm deep); with
+    its elastic give and the change of the push yielding (``kernels.eol_contact.partner_yield``)
+    measured 0.29 and 0.46 mm/s, 0.14 and 0.03 mm deep."""
+    w = wsim.World(fps=1.0 / (5 * DT), device="cpu")
+    w.add_collider(wsim.GroundPlane(0.0, friction=0.5))
+    cube = w.add(wsim.BemBody(BOX, MAT, DT, operators=box_ops, name="cube", position=(0.0, 0.1005, 0.0)))
+    top = w.add(wsim.EolBody(trimesh.creation.box(extents=(0.2, 0.2, 0.2)).subdivide().subdivide(), MAT,
+                             resolution=5, name="top", position=(0.03, 0.302, 0.0), damping=20.0))
+    speeds = []
+    for f in range(150):
+        w.step()
+        if f >= 100:
+            speeds.append((np.linalg.norm(cube.linear_momentum()) / cube.mass,
+                           np.linalg.norm(top.linear_momentum()) / top.mass))
+    mean = np.mean(speeds, axis=0)
+    assert mean.max() < 0.001, f"mean speeds (cube, box) {mean} m/s"
+    assert _depth(cube, top) < 5e-4 and _depth(top, cube) < 5e-4
+
+
 def _bem_box_on_eol_slab(ops, mat, velocity: float, device: str):
     """The 0.2 m BEM cube (material ``mat``, friction 0.5) set on the flat top of a heavy EoL slab
     (48 kg, friction 0.5: ``_slab_world``'s, at 100 fps so that the frame holds whole BEM steps) on

@@ -114,6 +114,10 @@ class _MovingSurface:
     friction: np.ndarray | None = None  # friction impulse this body took from it this step (world)
     friction_moment: np.ndarray | None = None  # its moment about the world origin
     friction_impulse: np.ndarray | None = None  # (V, 3) the friction part handed to it over the advance
+    received: tuple = (np.zeros(3), np.zeros(3))  # that push as momentum and angular momentum (its ``rigid`` com)
+    received_v: wp.array | None = None  # that push per vertex, on the device (the elastic give's)
+    impedance: float | None = None  # rho c_p of its material [kg / (m^2 s)]: its elastic give (``partner_compliance``)
+    pre_share: float = 0.0  # the share of ``received`` taken off its velocity before this step (``_expect_partners``)
 
 
 @dataclass(frozen=True)
@@ -937,9 +941,9 @@ class EolBody(VertexImpulses, Body):
         """Surfaces of other bodies that move on their own over the coming ``advance`` and may touch
         this one (issue 18): (key, vertices at its start (V, 3), at its end (V, 3), faces (M, 3),
         friction[, vertex masses (V,) or None[, (mass, centre of mass (3,), inertia (3, 3) about
-        it, world) or None]]); the vertex masses are a PBD pusher's, unused here; with the rigid
-        part the surface yields to this body's push (``kernels.eol_contact.partner_compliance``),
-        without it it is kinematic. They move linearly between the two; this body's contact rows
+        it, world[, rho c_p of its material]) or None]]); the vertex masses are a PBD pusher's,
+        unused here; with the last part the surface yields to this body's push, as a rigid body
+        and elastically (``kernels.eol_contact.partner_compliance``), without it it is kinematic. They move linearly between the two; this body's contact rows
         (Eq. 28) keep it out of them as out of a moving collider, each at the velocity of its
         vertices, and the opposite of what the rows push with is collected per vertex
         (``moving_surface_impulses``) for the World to hand to their bodies. Called by the World
@@ -969,6 +973,11 @@ class EolBody(VertexImpulses, Body):
                                     step_impulse=wp.zeros(len(p0), dtype=wp.vec3d, device=d),
                                     step_weight=wp.zeros(len(p0), dtype=wp.float64, device=d),
                                     closed=wmesh.inside_test(faces))
+            # the push of the last advance, which the partner takes over this one: its motion p0 -> p1
+            # already carries it (``_react``)
+            pushed = self.state.partner_push
+            last = pushed[pushed[:, 0] == key, 1:]
+            last = last if len(last) == len(p0) else None
             ms.p0_host, ms.p1_host = p0, np.asarray(p1, dtype=np.float64)
             ms.p0.assign(ms.p0_host)
             ms.p1.assign(ms.p1_host)
@@ -976,10 +985,23 @@ class EolBody(VertexImpulses, Body):
             ms.friction_impulse = np.zeros((len(p0), 3))
             ms.mu = float(mu)
             ms.rigid = None  # a kinematic surface, unless it says how it yields (``partner_compliance``)
+            ms.impedance = None
             if rigid is not None:
-                M, com, inertia = rigid
+                M, com, inertia, *more = rigid
+                ms.impedance = float(more[0]) if more else None
                 ms.rigid = (1.0 / float(M), np.linalg.inv(np.asarray(inertia, dtype=np.float64)),
                             np.asarray(com, dtype=np.float64), (ms.p1_host - ms.p0_host).mean(axis=0))
+                start = ms.rigid[2] - ms.rigid[3]  # its centre of mass at the start
+                if ms.impedance is None:  # it yields to the whole push (it takes it at once, a PBD body)
+                    last = None
+                ms.received = ((last.sum(axis=0), np.cross(p0 - start, last).sum(axis=0)) if last is not None
+                               else (np.zeros(3), np.zeros(3)))
+                if ms.received_v is None:
+                    ms.received_v = wp.zeros(len(p0), dtype=wp.vec3d, device=d)
+                if last is not None:
+                    ms.received_v.assign(last)
+                else:
+                    ms.received_v.zero_()
             both = np.concatenate([p0, np.asarray(p1)])
             ms.reach = 2.0 * float(np.linalg.norm(np.ptp(both, axis=0))) + self.grid.h
             if ms.vhits is None:  # per partner vertex: its row, coefficient and position (``vertex_rows``)
@@ -1004,7 +1026,11 @@ class EolBody(VertexImpulses, Body):
     def moving_surface_impulses(self) -> dict[int, np.ndarray]:
         """Momentum [N s] (V, 3) per vertex that each moving surface received from this body over
         the last ``advance`` (world axes), by key."""
-        return {ms.key: ms.impulse.numpy() + ms.friction_impulse for ms in self._moving}
+        normal = {ms.key: ms.impulse.numpy().copy() for ms in self._moving}  # (a view on the CPU)
+        # the normal part is kept: the partner takes it over the next interval (``set_moving_surfaces``)
+        self.state.partner_push = np.concatenate(
+            [np.zeros((0, 4))] + [np.column_stack([np.full(len(J), float(k)), J]) for k, J in normal.items()])
+        return {ms.key: normal[ms.key] + ms.friction_impulse for ms in self._moving}
 
     def advance(self, t0: float, t1: float) -> None:
         """Adaptive steps (Eq. 33) from the body's time to t1, each capped by the frame end, the
@@ -1100,7 +1126,7 @@ class EolBody(VertexImpulses, Body):
         d = self._device
         st = self.state
         n = self.grid.n_nodes
-        work = _StepWork(t=time.perf_counter())
+        work = _StepWork(t=time.perf_counter(), dt_guess=dt_guess)
         L, c = self._lagrangian_field()
         self._body_acc = self._body_acceleration(st.time) if self._accelerations else np.zeros(3)
         g_axes = self._axes().T @ (self._gravity + self._body_acc)
@@ -1123,6 +1149,8 @@ class EolBody(VertexImpulses, Body):
         """2-3. collision and assembly of this body's rows against the colliders and other methods'
         surfaces (S = J M^-1 J^T and the rows' rates on the device; ``work.system``, by row id)."""
         if self._colliders or self._moving:
+            if self._moving:
+                self._expect_partners(work.dt_guess)
             self._collide()
             work.t = self._tick("collision", work.t)
             work.m = self._compact()
@@ -1223,6 +1251,8 @@ class EolBody(VertexImpulses, Body):
                 st.contact_impulse = st.contact_impulse + self._react(work.m, dt)
         if work.changes is not None:  # and the rows between bodies
             st.contact_impulse = st.contact_impulse + work.pair_impulse[0] + dt * work.pair_impulse[1]
+        if self._moving:
+            self._settle_partners(dt, pushed=work.sol is not None)
         self._integrate_pose(dt, L_new, c_new)  # host only: none of the launches below reads the pose
         self._dt_np[0] = dt
         graph = self._finish_graph()
@@ -1563,10 +1593,7 @@ class EolBody(VertexImpulses, Body):
                     ms.push = wp.zeros(2, dtype=wp.vec3d, device=self._device)
                 ms.push.zero_()
                 com = self._partner_com(ms)
-                inv_M, inv_I, _, _ = ms.rigid
                 self._launch(kc.partner_push, ms.p0.shape[0], [ms.cur, ms.step_impulse, com, ms.push])
-                self._launch(kc.partner_yield, ms.p0.shape[0],
-                             [ms.velocity, ms.cur, ms.push, com, wp.float64(inv_M), _mat(inv_I)])
             if ms.friction is not None and np.any(ms.friction):  # friction is spread on the host
                 weight = ms.step_weight.numpy()
                 if weight.sum() > 0.0:
@@ -1632,7 +1659,55 @@ class EolBody(VertexImpulses, Body):
             if ms.vactive:
                 self._launch(kc.vertex_wrenches, ms.p0.shape[0], [ms.vhits, self._row_of_slot, self._partner_com(ms),
                                                                    ms.wrench])
-            self._launch(kc.partner_compliance, (m, m), [ms.wrench, wp.float64(inv_M), _mat(inv_I), m, self._system])
+            self._launch(kc.partner_compliance, (m, m), [ms.wrench, wp.float64(inv_M), _mat(inv_I),
+                                                          wp.float64(self._elastic_give(ms)), m, self._system])
+
+    def _yield_partner(self, ms: _MovingSurface, push: float, share: float) -> None:
+        """A yielding moving surface's velocity as the next rows see it (``partner_yield``): + its
+        give to this step's reaction times ``push`` (1: ``_react``'s ``ms.push``; 0: none), - its
+        give to ``share`` of the last interval's push, which it takes over this advance (its motion
+        p0 -> p1 carries that already)."""
+        if ms.push is None:
+            ms.push = wp.zeros(2, dtype=wp.vec3d, device=self._device)
+        inv_M, inv_I, _, _ = ms.rigid
+        self._launch(kc.partner_yield, ms.p0.shape[0],
+                     [ms.velocity, ms.cur, ms.push, wp.float64(push), wp.vec3d(*(share * ms.received[0])),
+                      wp.vec3d(*(share * ms.received[1])), self._partner_com(ms), wp.float64(inv_M), _mat(inv_I),
+                      ms.step_impulse, ms.received_v, wp.float64(share), ms.varea, wp.float64(self._elastic_give(ms))])
+
+    def _expect_partners(self, dt_guess: float) -> None:
+        """Before a step's rows: each yielding partner takes about dt_guess / T of the last
+        interval's push over the step, and this step's push takes its place, so the rows see it
+        yield to the difference only. Its velocity loses that share's give now (this step's QP
+        adds the give to its own push, S + S_B); ``_settle_partners`` squares it with the dt taken."""
+        span = max(self._span[1] - self._span[0], 1e-300)
+        for ms in self._moving:
+            if ms.rigid is not None and ms.impedance is not None:
+                ms.pre_share = dt_guess / span
+                self._yield_partner(ms, 0.0, ms.pre_share)
+
+    def _settle_partners(self, dt: float, pushed: bool) -> None:
+        """After a step of dt: each yielding partner's velocity gains the give to the step's push
+        (``pushed``: ``_react`` summed it) and loses that to the rest of its share of the last
+        interval's push, dt / T less what ``_expect_partners`` took off."""
+        span = max(self._span[1] - self._span[0], 1e-300)
+        for ms in self._moving:
+            if ms.rigid is not None and (pushed or ms.impedance is not None):
+                share = dt / span - ms.pre_share if ms.impedance is not None else 0.0
+                self._yield_partner(ms, 1.0 if pushed else 0.0, share)
+                ms.pre_share = 0.0
+
+    def _elastic_give(self, ms: _MovingSurface) -> float:
+        """1 / (rho c_p T): the normal velocity a yielding partner's surface takes per unit impulse
+        per unit area pushed steadily over this advance's interval T (the plane-wave impedance
+        rho c_p of its material: a push engages the column of material its P-wave reaches in T).
+        Rigid give alone took a BEM cube carrying an EoL box of its own mass as four times too
+        stiff: the push alternated between 50 and 280 mN s each 2 ms interval (the box's weight
+        157), the cube shaking at 17 mm/s."""
+        span = self._span[1] - self._span[0]
+        if ms.impedance is None or not np.isfinite(ms.impedance) or span <= 0.0:
+            return 0.0
+        return 1.0 / (ms.impedance * span)
 
     def contact_rows(self) -> ContactRows | None:
         """The contact constraints of Eq. (28) at the current state, read back with J (None: no
@@ -1657,6 +1732,7 @@ class _StepWork:
     part per unit dt (Eq. 31)."""
 
     t: float
+    dt_guess: float = 0.0  # the QP's dt (the step's dt is at most this)
     m: int = 0
     system: ContactSystem | None = None
     order: np.ndarray | None = None

@@ -39,12 +39,15 @@ class EolState:
         coupling_force, coupling_until, coupling_impulse: the point forces [N] (V, 3) of
             ``add_vertex_impulses`` still being delivered, until when [s] (-1: none), and the momentum
             handed over so far [N s].
+        partner_push: (n, 4) the normal push this body handed each yielding moving surface over the
+            last coupling interval, per vertex: the surface's key, then the impulse [N s] (world);
+            the partner takes it over the next interval (``EolBody.set_moving_surfaces``).
         grid_grown: (6,) cells the grid has grown by since ``bind``, below x, y, z and above x, y, z
             (``EolBody._regrid``; z and v are sized by the grown grid).
         failure: utf-8 bytes of "quantity\\x1fdetail\\x1freason" once a step failed (empty: none).
     """
 
-    _ragged: ClassVar[tuple[str, ...]] = ("active_rows", "failure", "coupling_force")
+    _ragged: ClassVar[tuple[str, ...]] = ("active_rows", "failure", "coupling_force", "partner_push")
 
     z: wp.array
     v: wp.array
@@ -67,6 +70,7 @@ class EolState:
     coupling_force: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     coupling_until: float = -1.0
     coupling_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    partner_push: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
     failure: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.uint8))
 
     def get_failure(self) -> tuple[str, str, str] | None:
