@@ -1795,8 +1795,8 @@ def _step_together(bodies: Sequence[EolBody], keys: Sequence[int], cap: float) -
 def _rows_between(bodies: Sequence[EolBody], keys: Sequence[int], works: list[_StepWork]) -> pairs.PairRows | None:
     """The contact rows between bodies whose grid boxes overlap: every sample of each inside the
     other's tracked surface, on the device (``kernels.eol_contact.pair_samples``), summed there
-    per row and per (body, row, node) (``wsim.eol.pairs.entries_device``); the host makes the
-    rows' sparse matrices from the sums (``wsim.eol.pairs.rows_from_entries``)."""
+    per row and per (body, row, node) (``wsim.eol.pairs.entries_device``); the host keeps each
+    body's entries from the sums (``wsim.eol.pairs.rows_from_entries``)."""
     from wsim.contact import pair_friction
 
     boxes = []
@@ -1869,23 +1869,29 @@ def _problems(works: list[_StepWork], rows: pairs.PairRows | None) -> list[tuple
     together; a body with only its own rows solves its own; a body without rows none."""
     if rows is None:  # no rows between bodies (one body, or none touching): each its own, if any
         return [([k], np.zeros(0, dtype=np.int64)) for k, w in enumerate(works) if w.m]
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     n = len(works)
-    links = rows.bodies
-    _, label = connected_components(coo_matrix((np.ones(len(links)), (links[:, 0], links[:, 1])), shape=(n, n)),
-                                    directed=False)
+    # the bodies' connected components over the pairs that have rows (a few dozen links at most:
+    # union-find in Python, no sparse graph)
+    label = list(range(n))
+
+    def root(k: int) -> int:
+        while label[k] != k:
+            label[k] = label[label[k]]
+            k = label[k]
+        return k
+
+    for link in np.unique(rows.bodies[:, 0] * n + rows.bodies[:, 1]):
+        a, b = root(int(link) // n), root(int(link) % n)
+        label[max(a, b)] = min(a, b)
     groups: dict[int, list[int]] = {}
     for k, w in enumerate(works):
-        if w.m or (rows is not None and k in rows.sides):
-            groups.setdefault(int(label[k]), []).append(k)
+        if w.m or k in rows.sides:
+            groups.setdefault(root(k), []).append(k)
     out = []
     for members in groups.values():
-        idx = np.zeros(0, dtype=np.int64)
-        if rows is not None:
-            idx = np.flatnonzero(np.isin(rows.bodies[:, 0], members))
-        out.append((members, idx))
+        member = np.zeros(n, dtype=bool)
+        member[members] = True
+        out.append((members, np.flatnonzero(member[rows.bodies[:, 0]])))  # the rows whose A is a member
     return out
 
 
@@ -1934,21 +1940,20 @@ def _solve(bodies: Sequence[EolBody], works: list[_StepWork], rows: pairs.PairRo
         w.active = int(w.sol.active.sum())
         own_lam[k] = w.sol.lam0 + dt_guess * w.sol.lam1
     lam0, lam1, active = sol.lam0[at:], sol.lam1[at:], sol.active[at:]
-    # each body's velocity change at the nodes the rows between bodies touch; the slip those
-    # rows see after every normal impulse (its own rows' too), and their friction
-    dv0 = {k: pairs.node_changes(sub, k, lam0) for k in sub.sides}
-    dv1 = {k: pairs.node_changes(sub, k, lam1) for k in sub.sides}
-    total = {k: dv0[k] + dt_guess * dv1[k] + (pairs.own_changes(sub, k, works[k].own_at, own_lam[k])
-                                              if k in own_lam and works[k].own_at is not None else 0.0)
-             for k in sub.sides}
+    # the velocity change of the nodes the rows between bodies touch, every body's at once
+    # (``PairRows.stacked``: body k's nodes at slices[k]), the dt-independent part and the part
+    # per unit dt; the slip those rows see after every normal impulse (its own rows' too), and
+    # their friction
+    nodes = sub.stacked().slices
+    dv = pairs.node_changes(sub, np.stack([lam0, lam1]))
+    total = dv[0] + dt_guess * dv[1]
+    for k, lam in own_lam.items():
+        if k in nodes and works[k].own_at is not None:
+            total[nodes[k]] += pairs.own_changes(sub, k, works[k].own_at, lam)
     slip = sub.slip_w + dt_guess * sub.slip_a + pairs.slip_change(sub, total)
     P = pairs.row_friction(sub, lam0 + dt_guess * lam1, slip)
-    for k in sub.sides:  # the dt-independent part carries the friction
-        dv0[k] = dv0[k] + pairs.friction_changes(sub, k, P)
-    # each pair's angular momentum kept, for both parts at once
-    couples = pairs.moment_couples(sub, {k: np.stack([dv0[k], dv1[k]]) for k in dv0})
-    for k, couple in couples.items():
-        dv0[k], dv1[k] = dv0[k] + couple[0], dv1[k] + couple[1]
+    dv[0] += pairs.friction_changes(sub, P)  # the dt-independent part carries the friction
+    dv += pairs.moment_couples(sub, dv)  # each pair's angular momentum kept, for both parts at once
     for k in members:
         st = bodies[k].state
         own_ids = works[k].system.ids[works[k].sol.active] if works[k].sol is not None else np.zeros(0, np.int64)
@@ -1958,9 +1963,9 @@ def _solve(bodies: Sequence[EolBody], works: list[_StepWork], rows: pairs.PairRo
         if side is None:
             w.changes = None
             continue
-        w.changes = (side.nodes, dv0[k], dv1[k])
-        mass = 1.0 / side.inv_mass[:, None]
-        w.pair_impulse = (side.Q @ (mass * dv0[k]).sum(axis=0), side.Q @ (mass * dv1[k]).sum(axis=0))
+        w.changes = (side.nodes, dv[0, nodes[k]], dv[1, nodes[k]])
+        p0, p1 = (1.0 / side.inv_mass) @ dv[:, nodes[k]]  # the momentum of each part (velocity axes)
+        w.pair_impulse = (side.Q @ p0, side.Q @ p1)
         on = (sub.bodies == k).any(axis=1)
         w.pair_rows, w.pair_active = int(on.sum()), int((active & on).sum())
         w.pair_overlap = float(sub.overlap[on].sum())
