@@ -764,8 +764,8 @@ def partner_compliance(wrench: wp.array2d(dtype=wp.vec3d), inv_mass: wp.float64,
     its centre of mass) to the rows' impulses, rigid and elastic. elastic = 1 / (rho c_p T)
     (``EolBody._elastic_give``): a push of impulse P spread over the row's area |f_i| for the
     coupling interval T moves that patch at P / (rho c_p |f_i| T), the plane-wave impedance; the
-    patches of different rows are taken as independent. A partner that yields moves away as it takes lambda, so the rows' right side
-    (its flux) grows by S_B lambda and the dual matrix of Eq. (29) becomes S + S_B: the QP shares
+    patches of different rows are taken as independent. A partner that yields moves away as it
+    takes lambda, so the rows' right side (its flux) grows by S_B lambda and the dual matrix of Eq. (29) becomes S + S_B: the QP shares
     each correction between this body's nodes and the partner by their masses. Without it the
     partner is kinematic, and a heavy EoL body matched a light partner's velocity with all its own
     mass: a 48 kg EoL slab flung the 0.8 kg BEM box sliding on it (+5.4 J). The partner is taken

@@ -64,13 +64,6 @@ SPARSE_ROWS = 400  # past this many rows the joint QP (``joint_system``) and the
 FRICTION_TOLERANCE = 1e-6  # the sweeps stop once no row's impulse changes by more than this of the largest bound
 
 
-def corner_offsets(node_shape: tuple[int, int, int]) -> np.ndarray:
-    """(8,) flat offsets of a cell's corners from its first node, in the kernels' corner order
-    c = 4 i + 2 j + k."""
-    ny, nz = node_shape[1], node_shape[2]
-    return np.array([(c // 4) * ny * nz + ((c // 2) % 2) * nz + c % 2 for c in range(8)], dtype=np.int64)
-
-
 @dataclass(frozen=True)
 class BodyInfo:
     """What the assembly needs of a body in the group: its grid (nodes per axis, origin, h), its
