@@ -945,8 +945,9 @@ class EolBody(VertexImpulses, Body):
         unused here; with the last part the surface yields to this body's push, as a rigid body
         and elastically (``kernels.eol_contact.partner_compliance``), without it it is kinematic.
         They move linearly between the two; this body's contact rows (Eq. 28) keep it out of them
-        as out of a moving collider, each at the velocity of its vertices, and the opposite of what the rows push with is collected per vertex
-        (``moving_surface_impulses``) for the World to hand to their bodies. Called by the World
+        as out of a moving collider, each at the velocity of its vertices, and the opposite of
+        what the rows push with is collected per vertex (``moving_surface_impulses``) for the
+        World to hand to their bodies. Called by the World
         before each ``advance``; an empty list ends the coupling. The normal contact is the paper's
         volume constraint against the surface moving with its vertices; Coulomb friction with
         coefficient ``friction`` acts at the grid nodes it pushes, relative to the rigid motion that
