@@ -99,9 +99,9 @@ if "timers" in passes:
     for n in ("entries_device", "rows_from_entries", "joint_system", "row_friction", "moment_couples",
               "node_changes", "own_rows_at", "slip_change", "friction_changes"):
         timed(eol_pairs, n)
-    for n in ("_rows_between", "_solve", "_problems", "solve_contact"):
+    for n in ("_own_rows_all", "_rows_between", "_solve", "_problems", "solve_contact"):
         timed(eol_body, n)
-    for n in ("_step_forces", "_step_own_rows", "_step_contact", "_step_split", "_step_finish", "_pair_samples"):
+    for n in ("_step_forces", "_step_contact", "_split_launch", "_split_read", "_step_finish", "_pair_samples"):
         timed(eol_body.EolBody, n)
     s0, t = eol_steps(), time.perf_counter()
     for _ in range(args.frames):

@@ -59,6 +59,7 @@ from wsim.kernels import eol_contact as kc
 from wsim.kernels import eol_loads as kl
 from wsim.kernels import eol_plastic as kp
 from wsim.kernels import eol_step as ks
+from wsim.kernels import mesh as km
 from wsim.kernels.eol_grid import grid_struct
 from wsim.launch import Launcher
 from wsim.materials import ElasticMaterial, body_material
@@ -774,6 +775,7 @@ class EolBody(VertexImpulses, Body):
         # the grid's margin (8), the split's fields (``kernels.eol_step.FIELDS``), the loads' force
         self._readout = wp.zeros(READ_LOAD + 3, dtype=wp.float64, device=d)
         self._vmax, self._fields = self._readout[:8], self._readout[8:READ_LOAD]
+        self._readout_host = wp.zeros(READ_LOAD + 3, dtype=wp.float64, device="cpu", pinned=d.is_cuda)  # its copy
         self._loads_applied = False
         self._restore_fields = wp.zeros(ks.FIELDS, dtype=wp.float64, device=d)
         self._iters = wp.zeros(max(len(self._volumes), len(self._z_vertices)), dtype=wp.int32, device=d)
@@ -934,7 +936,9 @@ class EolBody(VertexImpulses, Body):
         self._row_packed = wp.zeros((n_rows, width), dtype=wp.float64, device=d)
         self._row_of_slot = wp.full(n_rows, -1, dtype=wp.int32, device=d)
         self._n_rows = wp.zeros(1, dtype=wp.int32, device=d)
+        self._n_rows_host = wp.zeros(1, dtype=wp.int32, device="cpu", pinned=d.is_cuda)  # its copy (``_own_rows_all``)
         self._system = wp.empty(0, dtype=wp.float64, device=d)  # S and the row vectors, grown on demand
+        self._system_host = wp.empty(0, dtype=wp.float64, device="cpu", pinned=d.is_cuda)  # their copy
         self._friction_acc = wp.zeros(2, dtype=wp.vec3d, device=d)  # ``_friction``'s force and moment
 
     def set_moving_surfaces(self, surfaces: Sequence[tuple]) -> None:
@@ -1146,18 +1150,18 @@ class EolBody(VertexImpulses, Body):
         work.t = self._tick("forces", work.t)
         return work
 
-    def _step_own_rows(self, work: _StepWork) -> None:
-        """2-3. collision and assembly of this body's rows against the colliders and other methods'
-        surfaces (S = J M^-1 J^T and the rows' rates on the device; ``work.system``, by row id)."""
-        if self._colliders or self._moving:
-            if self._moving:
-                self._expect_partners(work.dt_guess)
-            self._collide()
-            work.t = self._tick("collision", work.t)
-            work.m = self._compact()
-            if work.m:
-                work.system, work.order = self._read_system(work.m)
-            work.t = self._tick("assembly", work.t)
+    def _own_rows_launch(self, work: _StepWork) -> bool:
+        """2. collision of this body's samples with the colliders and other methods' surfaces,
+        binned and compacted into rows on the device, the row count's copy to the host queued
+        (``_own_rows_all`` reads it); False when there is nothing to collide with."""
+        if not (self._colliders or self._moving):
+            return False
+        if self._moving:
+            self._expect_partners(work.dt_guess)
+        self._collide()
+        self._compact_launch()
+        wp.copy(self._n_rows_host, self._n_rows)
+        return True
 
     def _keep_unconstrained(self) -> None:
         """The unconstrained w, a, kept for a re-solve at a shorter dt."""
@@ -1190,10 +1194,9 @@ class EolBody(VertexImpulses, Body):
             self._friction(work.m, dt_guess)
         work.t = self._tick("qp", work.t)
 
-    def _step_split(self, work: _StepWork, attempt: int, cap: float) -> float | None:
-        """4. the least-squares split of w_0 and w_1 (Eqs. 23-25, 32) and the step size this body
-        allows (Eq. 33); None when the step cannot go on (the grid grew: step again; or failed)."""
-        st = self.state
+    def _split_launch(self, work: _StepWork, attempt: int) -> None:
+        """4. the least-squares split of w_0 and w_1 (Eqs. 23-25, 32) on the device, the velocity
+        maxima and fields' copy to the host queued (``_split_read`` reads it)."""
         w0, w1 = self._w, self._a
         self._split(w0, w1)  # the fields stay on the device; read back with vmax below
         if attempt == 0:
@@ -1208,7 +1211,13 @@ class EolBody(VertexImpulses, Body):
         else:
             self._vmax[:6].zero_()
         self._residual(w0, w1)
-        readout = self._readout.numpy()  # the step's one synchronization without contact
+        wp.copy(self._readout_host, self._readout)
+
+    def _split_read(self, work: _StepWork, cap: float) -> float | None:
+        """The step size this body allows (Eq. 33) from ``_split_launch``'s read-back (its copy
+        complete); None when the step cannot go on (the grid grew: step again; or failed)."""
+        st = self.state
+        readout = self._readout_host.numpy().copy()
         vmax = readout[:8]
         work.fields = unpack_fields(readout[8:READ_LOAD])
         weight = work.fields[2]
@@ -1501,9 +1510,11 @@ class EolBody(VertexImpulses, Body):
         if getattr(self, "_world_mesh", None) is None or self._world_points.shape[0] != n:
             self._world_points = wp.zeros(n, dtype=wp.vec3, device=self._device)
             self._launch(kc.world_surface, n, [self._surface, self._world_points])
-            self._world_mesh = wp.Mesh(points=self._world_points, support_winding_number=True,
-                                       indices=wp.array(self._tracked_faces.ravel(), dtype=wp.int32, device=self._device))
             self._world_closed = wmesh.inside_test(self._tracked_faces)
+            # the winding number's solid-angle data only where the inside test uses it (its refit
+            # took 0.11 ms a body and step at 32 cells; ray parity needs the plain tree)
+            self._world_mesh = wp.Mesh(points=self._world_points, support_winding_number=self._world_closed != km.WATERTIGHT,
+                                       indices=wp.array(self._tracked_faces.ravel(), dtype=wp.int32, device=self._device))
         else:
             self._launch(kc.world_surface, n, [self._surface, self._world_points])
             self._world_mesh.refit()
@@ -1603,21 +1614,27 @@ class EolBody(VertexImpulses, Body):
                     total += ms.friction
         return total
 
-    def _compact(self) -> int:
-        """Pack the rows that received samples (their data stay on the device); their number m."""
+    def _compact_launch(self) -> None:
+        """Pack the rows that received samples (their data stay on the device), their number m in
+        ``_n_rows``."""
         self._n_rows.zero_()
         self._launch(kc.compact_rows, self._row_flag.shape[0],
                   [self._row_acc, self._row_flag, self._n_rows, self._row_ids, self._row_packed,
                           self._row_of_slot])
+
+    def _compact(self) -> int:
+        """``_compact_launch`` and its m, read back."""
+        self._compact_launch()
         return int(self._n_rows.numpy()[0])
 
-    def _read_system(self, m: int) -> tuple[ContactSystem, np.ndarray]:
-        """The dual QP of the m compacted rows, assembled on the device (one m^2 + 8 m copy to the
-        host), sorted by row id; and that order (sorted row i is the device's row order[i])."""
+    def _system_launch(self, m: int) -> None:
+        """The dual QP of the m compacted rows, assembled on the device, its copy to the host (m^2 +
+        8 m numbers) queued (``_system_read`` reads it)."""
         d = self._device
         size = m * m + 8 * m
         if self._system.shape[0] < size:
             self._system = wp.empty(2 * size, dtype=wp.float64, device=d)
+            self._system_host = wp.empty(2 * size, dtype=wp.float64, device="cpu", pinned=d.is_cuda)
         self._system[: m * m].zero_()
         self._launch(kc.row_products, m, [self._surface, self._row_packed, self._row_ids, self._mass,
                                                            self._w, self._a, m, self._system])
@@ -1625,7 +1642,18 @@ class EolBody(VertexImpulses, Body):
                   [self._surface, self._row_packed, self._row_ids, self._row_of_slot, self._mass, m,
                           self._system])
         self._partner_compliance(m)
-        host = self._system[:size].numpy()
+        wp.copy(self._system_host, self._system, count=size)
+
+    def _read_system(self, m: int) -> tuple[ContactSystem, np.ndarray]:
+        """``_system_launch`` and ``_system_read``: the m rows' dual QP, read back."""
+        self._system_launch(m)
+        wp.synchronize_device(self._device)
+        return self._system_read(m)
+
+    def _system_read(self, m: int) -> tuple[ContactSystem, np.ndarray]:
+        """The m rows' dual QP of ``_system_launch`` (its copy complete), sorted by row id; and that
+        order (sorted row i is the device's row order[i])."""
+        host = self._system_host.numpy()[: m * m + 8 * m]
         ids = host[m * m + 7 * m:m * m + 8 * m].astype(np.int64)
         order = np.argsort(ids, kind="stable")
         vec = host[m * m:m * m + 7 * m].reshape(7, m)[:, order]
@@ -1762,8 +1790,7 @@ def _step_together(bodies: Sequence[EolBody], keys: Sequence[int], cap: float) -
     (33) asks for less (the smallest any body asks for) the QP is solved again there."""
     dt_guess = min(cap, 2.0 * min(b.state.dt_prev for b in bodies))  # the QP's guess, and the Coriolis factor's
     works = [b._step_forces(cap, dt_guess) for b in bodies]
-    for b, w in zip(bodies, works):
-        b._step_own_rows(w)
+    _own_rows_all(bodies, works)
     rows = _rows_between(bodies, keys, works) if len(bodies) > 1 else None
     problems = _problems(works, rows)
     for k in sorted({k for ks_, _ in problems for k in ks_}):
@@ -1775,11 +1802,14 @@ def _step_together(bodies: Sequence[EolBody], keys: Sequence[int], cap: float) -
     for attempt in range(4):
         for p, problem in enumerate(problems):
             guesses[p] = _solve(bodies, works, rows, problem, dt_guess, guesses.get(p), cache, p)
-        for k, (b, w) in enumerate(zip(bodies, works)):
-            if attempt and not (w.m or w.changes is not None):
-                continue  # no contact: its split and dt do not depend on the QP's dt
-            b._step_contact(w, attempt, dt_guess)
-            dts[k] = b._step_split(w, attempt, cap)
+        # no contact: a body's split and dt do not depend on the QP's dt
+        todo = [k for k, w in enumerate(works) if not attempt or w.m or w.changes is not None]
+        for k in todo:
+            bodies[k]._step_contact(works[k], attempt, dt_guess)
+            bodies[k]._split_launch(works[k], attempt)
+        wp.synchronize_device(bodies[0]._device)  # every body's read-back at once
+        for k in todo:
+            dts[k] = bodies[k]._split_read(works[k], cap)
             if dts[k] is None:
                 return  # the grid grew (step again) or the body failed
         dt = min(dts)
@@ -1791,6 +1821,39 @@ def _step_together(bodies: Sequence[EolBody], keys: Sequence[int], cap: float) -
         dt_guess = dt
     for b, w in zip(bodies, works):
         b._step_finish(w, dt)
+
+
+def _overlapping(lo: np.ndarray, hi: np.ndarray) -> list[tuple[int, int]]:
+    """The pairs (i < j) of boxes (lo, hi: (n, 3) corners) that overlap, in row-major order (one
+    broadcast test: a Python loop over the 120 pairs of a 16-body pile cost ~1 ms a step)."""
+    meet = np.all(hi[:, None, :] >= lo[None, :, :], axis=2)
+    i, j = np.nonzero(np.triu(meet & meet.T, 1))
+    return list(zip(i.tolist(), j.tolist()))
+
+
+def _own_rows_all(bodies: Sequence[EolBody], works: list[_StepWork]) -> None:
+    """2-3. every body's rows against the colliders and other methods' surfaces: collision and
+    compaction launched for all bodies, their counts read back together, then the dual QPs
+    (S = J M^-1 J^T and the rows' rates, ``work.system`` by row id) assembled for all and read
+    back together: two synchronizations a step for a group instead of two per body (the 16
+    bodies of a pile waited on the device 32 times a step, each time for one body's work)."""
+    launched = [b._own_rows_launch(w) for b, w in zip(bodies, works)]
+    if not any(launched):
+        return
+    wp.synchronize_device(bodies[0]._device)
+    for b, w, on in zip(bodies, works, launched):
+        if on:
+            w.t = b._tick("collision", w.t)
+            w.m = int(b._n_rows_host.numpy()[0])
+            if w.m:
+                b._system_launch(w.m)
+    if any(w.m for w in works):
+        wp.synchronize_device(bodies[0]._device)
+    for b, w, on in zip(bodies, works, launched):
+        if w.m:
+            w.system, w.order = b._system_read(w.m)
+        if on:
+            w.t = b._tick("assembly", w.t)
 
 
 def _rows_between(bodies: Sequence[EolBody], keys: Sequence[int], works: list[_StepWork]) -> pairs.PairRows | None:
@@ -1806,8 +1869,7 @@ def _rows_between(bodies: Sequence[EolBody], keys: Sequence[int], works: list[_S
         b._place_surface()
         boxes.append(b._grid_box())
     found = [(i, j, pair_friction(bodies[i].friction, bodies[j].friction))
-             for i in range(len(bodies)) for j in range(i + 1, len(bodies))
-             if np.all(boxes[i][1] >= boxes[j][0]) and np.all(boxes[j][1] >= boxes[i][0])]
+             for i, j in _overlapping(np.array([lo for lo, _ in boxes]), np.array([hi for _, hi in boxes]))]
     if not found:
         return None
     near = sorted({k for i, j, _ in found for k in (i, j)})
@@ -1826,17 +1888,28 @@ def _rows_between(bodies: Sequence[EolBody], keys: Sequence[int], works: list[_S
         wp.launch(kc.surface_bounds, pts.shape[0], [pts, k, bounds], device=d)
     lo_hi = bounds.numpy().astype(np.float64)
     pad = 1e-4 * max(float(np.linalg.norm(b[1] - b[0])) for b in boxes)  # float32 points
-    found = [f for f in found if np.all(lo_hi[f[0], 3:] + pad >= lo_hi[f[1], :3])
-             and np.all(lo_hi[f[1], 3:] + pad >= lo_hi[f[0], :3])]
+    keep = set(_overlapping(lo_hi[:, :3], lo_hi[:, 3:] + pad))
+    found = [f for f in found if (f[0], f[1]) in keep]
     if not found:
         return None
     launches: dict[int, list[tuple]] = {}
     for p, (i, j, _) in enumerate(found):
         launches.setdefault(i, []).append((j, 1, p))
         launches.setdefault(j, []).append((i, 0, p))
-    for k, todo in launches.items():
-        bodies[k]._pair_samples([(bodies[o], a, p, float(np.linalg.norm(boxes[o][1] - boxes[o][0])))
-                                 for o, a, p in todo])
+    # each body's launches on a stream of its own: a launch is one tree walk per sample in the
+    # other's material cells (latency, not throughput, sets its time: ~0.5 ms at 32 cells), and the
+    # 16 bodies of a pile made ~23 of them a step, one after the other, 12 ms of the GPU's time
+    todo_by_body = [(k, [(bodies[o], a, p, float(np.linalg.norm(boxes[o][1] - boxes[o][0]))) for o, a, p in todo])
+                    for k, todo in launches.items()]
+    if d.is_cuda and len(todo_by_body) > 1:
+        main = wp.get_stream(d)
+        for (k, others), stream in zip(todo_by_body, scratch.streams(len(todo_by_body))):
+            with wp.ScopedStream(stream, sync_enter=True):  # after the main stream's work so far
+                bodies[k]._pair_samples(others)
+            main.wait_stream(stream)
+    else:
+        for k, others in todo_by_body:
+            bodies[k]._pair_samples(others)
     # every body's record count in one synchronization (copies into one page-locked buffer), so
     # that the bodies' launches queue up behind each other instead of each waiting for its own
     for k in launches:

@@ -387,6 +387,14 @@ class PairScratch:
         self._records = 0
         self._tables: dict[str, tuple[np.ndarray, wp.array]] = {}
         self._bodies = 0
+        self._streams: list[wp.Stream] = []
+
+    def streams(self, n: int) -> list[wp.Stream]:
+        """n CUDA streams of the device (made once, kept): the bodies' sample launches run on them
+        side by side."""
+        while len(self._streams) < n:
+            self._streams.append(wp.Stream(self.device))
+        return self._streams[:n]
 
     def per_body(self, bodies: int) -> tuple[wp.array, wp.array]:
         """The group's surface bounds (bodies x 6, float32: min then max, reset to +inf, -inf)
