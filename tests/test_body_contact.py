@@ -910,6 +910,59 @@ def test_eol_joint_qp_is_the_same_sparse_and_dense(monkeypatch):
     np.testing.assert_allclose(run(), dense, rtol=0.0, atol=1e-9)
 
 
+def test_eol_pair_friction_is_near_coulombs_minimum(monkeypatch):
+    """The friction of the rows between EoL bodies (``pairs.row_friction``) is the minimum of
+    1/2 P.K P + slip.P over each row's tangential disc |P_i| <= mu lambda_i |D_i| (Coulomb's law
+    per row: stick where the slip can be removed, else slide at the bound). A box resting on a
+    box on the ground, friction 0.5: each of the last ten solves' impulses against the minimum
+    found independently (plain projected gradient with one step 1 / |K|, 2000 sweeps, checked
+    converged by its own fixed-point residual). Measured: median 0.5 %, at most 2.7 % of the
+    largest bound (accelerated sweeps); the plain per-row sweeps they replaced, 2.1 % and 4.2 %."""
+    from wsim.eol import pairs
+
+    seen = []
+    solve = pairs.row_friction
+
+    def kept(rows, lam, slip):
+        P = solve(rows, lam, slip)
+        seen.append((rows, lam.copy(), slip.copy(), P))
+        return P
+
+    monkeypatch.setattr(pairs, "row_friction", kept)
+    w = wsim.World(fps=30, device="cpu")
+    w.add_collider(wsim.GroundPlane(name="ground"))
+    mat = wsim.ElasticMaterial(E=2e5, nu=0.3, rho=500.0)
+    box = trimesh.creation.box(extents=(0.3, 0.2, 0.3)).subdivide().subdivide()
+    w.add(wsim.EolBody(box, mat, resolution=5, name="low", position=(0, 0.101, 0), damping=100.0, friction=0.5))
+    w.add(wsim.EolBody(box, mat, resolution=5, name="top", position=(0.03, 0.305, 0), damping=100.0, friction=0.5))
+    for _ in range(10):
+        w.step()
+    assert len(seen) >= 10
+    errors = []
+    for rows, lam, slip, P in seen[-10:]:
+        st = rows.stacked()
+        K = (st.Gr @ st.Gr.T).toarray()
+        size = np.linalg.norm(rows.D, axis=1)
+        bound = rows.mu * np.maximum(lam, 0.0) * size
+        n = rows.D / size[:, None]
+
+        def disc(Q: np.ndarray) -> np.ndarray:
+            Q = Q - np.sum(Q * n, axis=1)[:, None] * n
+            r = np.linalg.norm(Q, axis=1)
+            return Q * np.minimum(1.0, bound / np.maximum(r, 1e-300))[:, None]
+
+        t = 1.0 / np.linalg.eigvalsh(K).max()
+        ref = np.zeros_like(slip)
+        for _ in range(2000):
+            ref = disc(ref - t * (K @ ref + slip))
+        assert np.abs(ref - disc(ref - t * (K @ ref + slip))).max() < 1e-9 * bound.max()
+        assert np.all(np.linalg.norm(P, axis=1) <= bound * (1 + 1e-9) + 1e-15)  # within the discs
+        assert np.abs(np.sum(P * n, axis=1)).max() <= 1e-9 * bound.max()  # tangential
+        errors.append(np.abs(P - ref).max() / bound.max())
+    assert np.median(errors) < 0.01
+    assert np.max(errors) < 0.05
+
+
 def _slab_world(mu: float, device: str):
     """A World (60 fps) with a frictionless ground and a heavy EoL slab (0.8 x 0.1 x 0.3 m, 48 kg,
     top at y = 0.1005 m) of friction mu on it (16 cells: two across its thickness, where its

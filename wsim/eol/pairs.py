@@ -574,12 +574,21 @@ def row_friction(rows: PairRows, lam: np.ndarray, slip: np.ndarray) -> np.ndarra
     (m, 3) is each row's relative velocity v_A - v_B after the normal impulses (at the QP's dt),
     lam the rows' normal multipliers (A's normal impulse is lam |D|). P is tangential to the row's
     normal D / |D|, at most mu lam |D|, and removes as much of the tangential slip as that allows:
-    projected Jacobi sweeps on the rows' coupled tangential response K = sum_b G_b M_b^-1 G_b^T
-    (the slip of row i changes by K_ij P_j), each row's step scaled by K_ii / sum_j |K_ij| so the
-    sweeps cannot overshoot where rows share nodes: P_i <- P_i - s_i (I - n_i n_i^T)(slip_i +
-    sum_j K_ij P_j) (s_i = 1 / sum_j |K_ij|), then clamped to the bound; the sweeps stop after
-    the first that changes no component of P by more than ``FRICTION_TOLERANCE`` of the largest
-    bound, or after ``FRICTION_SWEEPS``."""
+    the minimum of 1/2 P.K P + slip.P over those discs, K = sum_b G_b M_b^-1 G_b^T the rows'
+    coupled tangential response (the slip of row i changes by K_ij P_j), whose minimum is
+    Coulomb's law per row (stick where the slip can be removed inside the disc, else slide at the
+    bound against the remaining slip).
+
+    Solved by accelerated projected gradient (FISTA, Beck & Teboulle 2009, with the adaptive
+    restart of O'Donoghue & Candes 2015), each row's step s_i = 1 / sum_j |K_ij| (a diagonal
+    metric that bounds K, so the step cannot overshoot where rows share nodes): Y the
+    extrapolated point, P <- clamp(Y - s (I - n n^T)(K Y + slip)), Y <- P + (t_k - 1) / t_{k+1}
+    (P - P_prev), restarted (Y = P) where the step turns back against the last change. The
+    sweeps stop after the first that changes no component of P by more than
+    ``FRICTION_TOLERANCE`` of the largest bound, or after ``FRICTION_SWEEPS``. On the rows of a
+    16-object pile the plain projected sweeps it replaced were never done within the 30 sweeps,
+    their impulses 2-20 % of the largest bound from the minimum's; these are 0.01-7 % from it
+    after as many, as the plain sweeps are after 100-300."""
     m = rows.m
     size = np.linalg.norm(rows.D, axis=1)
     bound = rows.mu * np.maximum(lam, 0.0) * size
@@ -589,49 +598,49 @@ def row_friction(rows: PairRows, lam: np.ndarray, slip: np.ndarray) -> np.ndarra
     sK, diag, step = _friction_matrix(rows)
     tol = FRICTION_TOLERANCE * float(bound.max())
     # At tens to hundreds of rows each numpy call's overhead, not its arithmetic, is a sweep's
-    # cost, so the sweeps make as few calls as they can: they work on contiguous (3, m) arrays
-    # (a component per row) in buffers made once, with the step folded into K and the slip
-    # (diag(s) K, s slip: the projection commutes with a row's scale), and the stopping rule is
-    # tested every ``chunk`` sweeps on the changes each made (kept, with the iterates): the first
-    # sweep that changed P by at most tol is where the sweeps would have stopped, and its P is
-    # returned, the same as testing after each sweep.
-    chunk = max(1, min(5, FRICTION_SWEEPS))
-    it = np.zeros((chunk + 1, 3, m))  # P_0 .. P_chunk of the current chunk
-    change = np.empty((chunk, 3, m))
+    # cost, so the sweeps make few calls: contiguous (3, m) arrays (a component per row) in
+    # buffers made once, the step folded into K and the slip (diag(s) K, s slip: the projection
+    # commutes with a row's scale).
     s_slip = (step[:, None] * slip).T
     dense = not sp.issparse(sK)
     sKT = sK.T
+    P, new, Y = np.zeros((3, m)), np.empty((3, m)), np.zeros((3, m))
     u, d = np.empty((3, m)), np.empty((3, m))
     un = np.empty(m)
-    sweeps = 0
-    while True:
-        for k in range(chunk):
-            P, new = it[k], it[k + 1]
-            if dense:
-                np.matmul(P, sKT, out=u)  # (diag(s) K P)^T
-            else:
-                u[...] = (sK @ P.T).T
-            u += s_slip
-            np.multiply(u, n, out=d)
-            np.add.reduce(d, axis=0, out=un)
-            np.multiply(n, un, out=d)
-            u -= d  # tangential: P stays tangential, and so the update
-            np.subtract(P, u, out=new)
-            np.multiply(new, new, out=d)
-            np.add.reduce(d, axis=0, out=un)
-            np.sqrt(un, out=un)
-            np.maximum(un, 1e-300, out=un)
-            np.divide(bound, un, out=un)
-            np.minimum(un, 1.0, out=un)
-            new *= un
-            np.subtract(new, P, out=change[k])
-        np.abs(change, out=change)
-        done = np.flatnonzero(change.reshape(chunk, -1).max(axis=1)[: FRICTION_SWEEPS - sweeps] <= tol)
-        if len(done) or sweeps + chunk >= FRICTION_SWEEPS:
-            P = np.ascontiguousarray(it[int(done[0]) + 1 if len(done) else FRICTION_SWEEPS - sweeps].T)
+    t = 1.0
+    for _ in range(FRICTION_SWEEPS):
+        if dense:
+            np.matmul(Y, sKT, out=u)  # (diag(s) K Y)^T
+        else:
+            u[...] = (sK @ Y.T).T
+        u += s_slip
+        np.multiply(u, n, out=d)
+        np.add.reduce(d, axis=0, out=un)
+        np.multiply(n, un, out=d)
+        u -= d  # tangential: P and Y stay tangential, and so the update
+        np.subtract(Y, u, out=new)
+        np.multiply(new, new, out=d)
+        np.add.reduce(d, axis=0, out=un)
+        np.sqrt(un, out=un)
+        np.maximum(un, 1e-300, out=un)
+        np.divide(bound, un, out=un)
+        np.minimum(un, 1.0, out=un)
+        new *= un
+        np.subtract(new, P, out=d)  # the change
+        if np.abs(d).max() <= tol:
+            P, new = new, P
             break
-        sweeps += chunk
-        it[0] = it[chunk]
+        np.subtract(Y, new, out=u)
+        t_next = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * t * t))
+        if np.vdot(u, d) > 0.0:  # the step went back against the last change: restart
+            Y[...] = new
+            t_next = 1.0
+        else:
+            np.multiply(d, (t - 1.0) / t_next, out=Y)
+            Y += new
+        t = t_next
+        P, new = new, P
+    P = np.ascontiguousarray(P.T)
     P[diag <= 0.0] = 0.0
     return P
 
