@@ -1269,6 +1269,8 @@ class EolBody(VertexImpulses, Body):
         self._dt_np[0] = dt
         graph = self._finish_graph()
         if graph is not None:
+            if stream is not None:  # after this step's launches so far (the reaction above reads the surface it moves)
+                stream.wait_stream(wp.get_stream(self._device))
             wp.capture_launch(graph, stream=stream)
             self._tick("forces", work.t)  # the finish's stages in one: advection, tracking, forces
         else:
@@ -1791,16 +1793,20 @@ def _step_together(bodies: Sequence[EolBody], keys: Sequence[int], cap: float) -
     velocity until dt collapsed (issue 16). So in contact dt never exceeds dt_guess, and when Eq.
     (33) asks for less (the smallest any body asks for) the QP is solved again there."""
     dt_guess = min(cap, 2.0 * min(b.state.dt_prev for b in bodies))  # the QP's guess, and the Coriolis factor's
-    # each body's forces on a stream of its own, side by side on the device with each other and
-    # with the collisions (on the main stream: colliders' meshes are shared, made on first use)
+    # each body's forces on a stream of its own, side by side on the device; the collisions follow
+    # on the main stream (colliders' meshes are shared, made on first use) once all are done (the
+    # QP's assembly reads w and a). Joined also when a step raises (a user's load), so that no
+    # stream's work is left to run against the next step's.
     streams = _group_streams(bodies) if bodies[0]._device.is_cuda and len(bodies) > 1 else None
     main = _fork(bodies[0]._device, streams) if streams is not None else None
     works = []
-    for k, b in enumerate(bodies):
-        with contextlib.nullcontext() if streams is None else wp.ScopedStream(streams[k], sync_enter=False):
-            works.append(b._step_forces(cap, dt_guess))
-    if main is not None:
-        _join(main, streams)  # w and a, which the QP's assembly reads
+    try:
+        for k, b in enumerate(bodies):
+            with contextlib.nullcontext() if streams is None else wp.ScopedStream(streams[k], sync_enter=False):
+                works.append(b._step_forces(cap, dt_guess))
+    finally:
+        if main is not None:
+            _join(main, streams)
     _own_rows_all(bodies, works)
     rows = _rows_between(bodies, keys, works) if len(bodies) > 1 else None
     problems = _problems(works, rows)
@@ -1831,13 +1837,14 @@ def _step_together(bodies: Sequence[EolBody], keys: Sequence[int], cap: float) -
             break
         dt_guess = dt
     # the bodies' finishes (one captured graph each, ~0.27 ms of GPU at 32 cells) side by side, each
-    # on a stream of its own after the main stream's work so far: one after the other they were
-    # 4.4 ms of the 32-cell pile's step
-    main = _fork(bodies[0]._device, streams) if streams is not None else None
-    for k, (b, w) in enumerate(zip(bodies, works)):
-        b._step_finish(w, dt, None if streams is None else streams[k])
-    if main is not None:
-        _join(main, streams)
+    # on a stream of its own after the main stream's work so far (``_step_finish``): one after the
+    # other they were 4.4 ms of the 32-cell pile's step
+    try:
+        for k, (b, w) in enumerate(zip(bodies, works)):
+            b._step_finish(w, dt, None if streams is None else streams[k])
+    finally:
+        if streams is not None:
+            _join(wp.get_stream(bodies[0]._device), streams)
 
 
 def _group_scratch(bodies: Sequence[EolBody]) -> pairs.PairScratch:
@@ -1948,10 +1955,12 @@ def _rows_between(bodies: Sequence[EolBody], keys: Sequence[int], works: list[_S
     if d.is_cuda and len(todo_by_body) > 1:
         streams = scratch.streams(len(bodies))[: len(todo_by_body)]
         main = _fork(d, streams)
-        for (k, others), stream in zip(todo_by_body, streams):
-            with wp.ScopedStream(stream, sync_enter=False):
-                bodies[k]._pair_samples(others)
-        _join(main, streams)
+        try:
+            for (k, others), stream in zip(todo_by_body, streams):
+                with wp.ScopedStream(stream, sync_enter=False):
+                    bodies[k]._pair_samples(others)
+        finally:
+            _join(main, streams)
     else:
         for k, others in todo_by_body:
             bodies[k]._pair_samples(others)
