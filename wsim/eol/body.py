@@ -36,7 +36,7 @@ import contextlib
 import math
 import time
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 
 import numpy as np
 import trimesh
@@ -1795,18 +1795,14 @@ def _step_together(bodies: Sequence[EolBody], keys: Sequence[int], cap: float) -
     dt_guess = min(cap, 2.0 * min(b.state.dt_prev for b in bodies))  # the QP's guess, and the Coriolis factor's
     # each body's forces on a stream of its own, side by side on the device; the collisions follow
     # on the main stream (colliders' meshes are shared, made on first use) once all are done (the
-    # QP's assembly reads w and a). Joined also when a step raises (a user's load), so that no
-    # stream's work is left to run against the next step's.
-    streams = _group_streams(bodies) if bodies[0]._device.is_cuda and len(bodies) > 1 else None
-    main = _fork(bodies[0]._device, streams) if streams is not None else None
+    # QP's assembly reads w and a)
+    d = bodies[0]._device
+    streams = _group_streams(bodies) if d.is_cuda and len(bodies) > 1 else None
     works = []
-    try:
+    with _side_by_side(d, streams):
         for k, b in enumerate(bodies):
-            with contextlib.nullcontext() if streams is None else wp.ScopedStream(streams[k], sync_enter=False):
+            with _on(streams, k):
                 works.append(b._step_forces(cap, dt_guess))
-    finally:
-        if main is not None:
-            _join(main, streams)
     _own_rows_all(bodies, works)
     rows = _rows_between(bodies, keys, works) if len(bodies) > 1 else None
     problems = _problems(works, rows)
@@ -1839,12 +1835,9 @@ def _step_together(bodies: Sequence[EolBody], keys: Sequence[int], cap: float) -
     # the bodies' finishes (one captured graph each, ~0.27 ms of GPU at 32 cells) side by side, each
     # on a stream of its own after the main stream's work so far (``_step_finish``): one after the
     # other they were 4.4 ms of the 32-cell pile's step
-    try:
+    with _side_by_side(d, streams):
         for k, (b, w) in enumerate(zip(bodies, works)):
             b._step_finish(w, dt, None if streams is None else streams[k])
-    finally:
-        if streams is not None:
-            _join(wp.get_stream(bodies[0]._device), streams)
 
 
 def _group_scratch(bodies: Sequence[EolBody]) -> pairs.PairScratch:
@@ -1860,20 +1853,30 @@ def _group_streams(bodies: Sequence[EolBody]) -> list[wp.Stream]:
     return _group_scratch(bodies).streams(len(bodies))
 
 
-def _fork(device: wp.Device, streams: list[wp.Stream]) -> wp.Stream:
-    """Each of ``streams`` waits for the main stream's work so far (one event: a stream that waited
-    on the main stream after another's join would wait for that stream too); the main stream."""
+@contextlib.contextmanager
+def _side_by_side(device: wp.Device, streams: list[wp.Stream] | None) -> Iterator[None]:
+    """Work launched inside on ``streams`` (``_on``) runs side by side: each stream first waits for
+    the main stream's work so far (one event: a stream that waited on the main stream after
+    another's join would wait for that stream too), and the main stream's later work waits for
+    all of them, also when the work inside raises (no stream's work is left to run against the
+    next step's). None: no streams (the CPU, one body), nothing to order."""
+    if streams is None:
+        yield
+        return
     main = wp.get_stream(device)
     ready = main.record_event()
     for stream in streams:
         stream.wait_event(ready)
-    return main
+    try:
+        yield
+    finally:
+        for stream in streams:
+            main.wait_stream(stream)
 
 
-def _join(main: wp.Stream, streams: list[wp.Stream]) -> None:
-    """The main stream's later work waits for all of ``streams``'."""
-    for stream in streams:
-        main.wait_stream(stream)
+def _on(streams: list[wp.Stream] | None, k: int) -> contextlib.AbstractContextManager:
+    """Launches on ``streams[k]`` (inside ``_side_by_side``; None: on the current stream)."""
+    return contextlib.nullcontext() if streams is None else wp.ScopedStream(streams[k], sync_enter=False)
 
 
 def _overlapping(lo: np.ndarray, hi: np.ndarray) -> list[tuple[int, int]]:
@@ -1952,18 +1955,11 @@ def _rows_between(bodies: Sequence[EolBody], keys: Sequence[int], works: list[_S
     # 16 bodies of a pile made ~23 of them a step, one after the other, 12 ms of the GPU's time
     todo_by_body = [(k, [(bodies[o], a, p, float(np.linalg.norm(boxes[o][1] - boxes[o][0]))) for o, a, p in todo])
                     for k, todo in launches.items()]
-    if d.is_cuda and len(todo_by_body) > 1:
-        streams = scratch.streams(len(bodies))[: len(todo_by_body)]
-        main = _fork(d, streams)
-        try:
-            for (k, others), stream in zip(todo_by_body, streams):
-                with wp.ScopedStream(stream, sync_enter=False):
-                    bodies[k]._pair_samples(others)
-        finally:
-            _join(main, streams)
-    else:
-        for k, others in todo_by_body:
-            bodies[k]._pair_samples(others)
+    streams = scratch.streams(len(bodies))[: len(todo_by_body)] if d.is_cuda and len(todo_by_body) > 1 else None
+    with _side_by_side(d, streams):
+        for i, (k, others) in enumerate(todo_by_body):
+            with _on(streams, i):
+                bodies[k]._pair_samples(others)
     # every body's record count in one synchronization (copies into one page-locked buffer), so
     # that the bodies' launches queue up behind each other instead of each waiting for its own
     for k in launches:
