@@ -157,6 +157,16 @@ class Body(ABC):
     def advance(self, t0: float, t1: float) -> None:
         """Advance the state from time t0 to t1 [s] (one frame)."""
 
+    def expect_push(self, key: int, impulses: np.ndarray) -> None:
+        """Take ``impulses`` (V, 3) [N s] as what the moving surface ``key`` receives over the
+        coming interval (a pusher's ``state.partner_push``, which it yields to the change from;
+        by default what this body pushed it with over the last one): the World's implicit
+        coupling sets its guess this way (``World(coupling=...)``)."""
+        st = self.state
+        rows = st.partner_push[st.partner_push[:, 0] != key]
+        J = np.asarray(impulses, dtype=np.float64)
+        st.partner_push = np.concatenate([rows, np.column_stack([np.full(len(J), float(key)), J])])
+
     def check_frames(self, last: int, fps: float) -> None:
         """Raise before a run if this body cannot be stepped up to World frame ``last`` (at ``fps``);
         most bodies can step forever (a reconstruction covers its recording's frames only)."""
@@ -212,18 +222,31 @@ class VertexImpulses:
             self._vertex_masses = self.mass * areas / areas.sum()
         return self._vertex_masses
 
-    def add_vertex_impulses(self, impulses: Any, duration: float) -> None:
+    def add_vertex_impulses(self, impulses: Any, duration: float, keep_pending: bool = False) -> None:
         """Deliver momentum ``impulses`` [N s] (V, 3) per mesh vertex (world axes) as constant point
         forces impulses / duration over the next ``duration`` seconds, replacing what is left of an
-        earlier call. The World hands a body this way what bodies of other methods pushed it with
-        over the last coupling interval (explicit two-way coupling)."""
+        earlier call (``keep_pending``: adding what is left of it, ``pending_vertex_impulses``, to
+        them). The World hands a body this way what bodies of other methods pushed it with
+        over the last coupling interval (explicit two-way coupling), or its guess of what they
+        push it with over the coming one (implicit coupling, ``World(coupling=...)``)."""
         self._require_bound()
         J = checked_vertex_impulses(self.name, impulses, self._coupling_vertices(), duration)
         st = self.state
-        st.coupling_force = J / duration
+        total = J + self.pending_vertex_impulses() if keep_pending else J
+        st.coupling_force = total / duration
         st.coupling_until = self._coupling_time() + duration
         st.coupling_impulse = st.coupling_impulse + J.sum(axis=0)
         self._register_coupling()
+
+    def pending_vertex_impulses(self) -> np.ndarray:
+        """(V, 3) the momentum [N s] an earlier ``add_vertex_impulses`` has still to deliver."""
+        self._require_bound()
+        st = self.state
+        left = st.coupling_until - self._coupling_time()
+        n = self._coupling_vertices()
+        if left <= 1e-12 or st.coupling_force.shape != (n, 3):
+            return np.zeros((n, 3))
+        return st.coupling_force * left
 
     @property
     def coupling_impulse(self) -> np.ndarray:

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, ClassVar, Sequence
 
 import numpy as np
 import warp as wp
@@ -55,6 +55,15 @@ class PbdState:
     # (``add_vertex_impulses``) [N s] (V, 3), and all it has handed so far [N s] (3,)
     push: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     coupling_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    # (n, 4) the push this body handed each yielding moving surface over the last interval, rows
+    # (key, J) per vertex: the partner takes it over the next one, and yields to its change only
+    # (``set_moving_surfaces``)
+    partner_push: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    # (n, 2) rows (key, the contacts of the last iteration on it): how each particle's projection
+    # shares the partner's give in the next interval's first iteration (``shared_give``)
+    partner_contacts: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
+
+    _ragged: ClassVar[tuple[str, ...]] = ("partner_push", "partner_contacts")
 
 
 @dataclass
@@ -117,6 +126,15 @@ class _MovingSurface:
     closed: int  # the surface's inside test (``wsim.mesh.inside_test``)
     keep_out: bool  # its vertices are also kept out of this body's surface (``moving_points_contact``)
     inv_mass_v: wp.array | None  # then: its vertices' inverse lumped masses [1/kg]
+    give: wp.array  # how it yields (one ``kernels.pbd_contact.Give``; inv_mass 0: kinematic)
+    total: wp.array  # an iteration's push on it (momentum)
+    count: wp.array  # contacts of the last iteration, of this one (``moving_surface_contact``)
+    area: wp.array  # its lumped vertex areas [m^2] (zero while it is kinematic)
+    u: wp.array | None = None  # ... its vertices' yield velocity this interval [m/s]
+    y: wp.array | None = None  # ... how far they have yielded [m]
+    seen: wp.array | None = None  # ... the impulse its last yield counted
+    received_v: wp.array | None = None  # ... the last interval's push per vertex [N s]
+    yielding: bool = False
 
 
 class PbdBody(Body):
@@ -189,6 +207,11 @@ class PbdBody(Body):
             particle system: they share the global volume constraint and the centre of mass).
             Otherwise such a mesh is refused: make one body per piece.
     """
+
+    #: its particles share each correction with the BEM body they push (its give in translation
+    #: and elastically: the World hands ``set_moving_surfaces`` its mass, centre of mass, inertia
+    #: and impedance, ``kernels.pbd_contact.Give``)
+    yielding_partners = True
 
     def __init__(
         self,
@@ -915,8 +938,13 @@ class PbdBody(Body):
             self.dxc.zero_()  # contact corrections of this substep (colliders and other bodies)
         S = self._layout[0]
         for ms in self._moving:
-            wp.launch(kc.lerp_points, dim=ms.cur.shape[0], inputs=[ms.p0, ms.p1, float(s - 1) / S, ms.prev])
-            wp.launch(kc.lerp_points, dim=ms.cur.shape[0], inputs=[ms.p0, ms.p1, float(s) / S, ms.cur])
+            if ms.yielding:
+                wp.launch(kc.yielding_substep, dim=ms.cur.shape[0],
+                          inputs=[ms.p0, ms.p1, float(s - 1) / S, float(s) / S, ms.give, ms.received_v, ms.area,
+                                  1.0 / S, S * h, h, ms.u, ms.y, ms.prev, ms.cur])
+            else:
+                wp.launch(kc.lerp_points, dim=ms.cur.shape[0], inputs=[ms.p0, ms.p1, float(s - 1) / S, ms.prev])
+                wp.launch(kc.lerp_points, dim=ms.cur.shape[0], inputs=[ms.p0, ms.p1, float(s) / S, ms.cur])
             ms.mesh.refit()
         if self.conserve_angular_momentum:
             self._moments.zero_()
@@ -974,7 +1002,8 @@ class PbdBody(Body):
                 kc.moving_surface_contact,
                 dim=m.n_surface,
                 inputs=[self.x_pred, self.dx, self.dxc, self.x_prev, self.inv_mass, ms.mesh.id, ms.prev,
-                        self.contact_margin, ms.reach, ms.friction, 1.0 / h, ms.impulse, ms.closed],
+                        self.contact_margin, ms.reach, ms.friction, 1.0 / h, ms.impulse, ms.closed, ms.give,
+                        ms.area, self._layout[0] * h, ms.count, ms.total],
             )
         if self._own_surface is not None:  # and their vertices out of this body's surface (``keep_out``)
             own = self._own_surface
@@ -986,27 +1015,40 @@ class PbdBody(Body):
                     dim=ms.cur.shape[0],
                     inputs=[ms.cur, ms.prev, own.mesh.id, self.x_prev, self.dx, self.dxc, self.inv_mass,
                             ms.inv_mass_v, self.contact_margin, own.reach, ms.friction, 1.0 / h, ms.impulse,
-                            own.closed],
+                            own.closed, ms.give, ms.area, self._layout[0] * h, ms.count, ms.total],
                 )
+        for ms in self._moving:
+            if ms.yielding:  # the partner yields to this iteration's push (``yielding_iteration``)
+                wp.launch(kc.yielding_iteration, dim=ms.cur.shape[0],
+                          inputs=[ms.impulse, ms.seen, ms.total, ms.give, ms.area, self._layout[0] * h, h, ms.count,
+                                  ms.u, ms.y, ms.cur])
+                ms.total.zero_()
+                ms.mesh.refit()
 
     def set_moving_surfaces(self, surfaces: Sequence[tuple]) -> None:
         """Surfaces of other bodies that move on their own over the coming frame and may touch this
         one: (key, vertices at the frame start (V, 3), at its end (V, 3), faces (M, 3), friction[,
-        vertex masses (V,) or None]); the partner is kinematic over the interval. Over the frame
-        they move linearly between the two; this body's surface particles are kept out of them like
-        out of a moving collider, and where the vertices' lumped masses are given (a BEM body's),
-        those vertices out of this body's surface, if it is closed (a corner between particles;
-        ``kernels.pbd_contact.moving_points_contact``). The momentum that takes is collected per
-        vertex (``moving_surface_impulses``) for the World to hand to their bodies. Called by the
-        World before each ``advance``; an empty list ends the coupling."""
+        vertex masses (V,) or None[, (mass, centre of mass (3,), inertia (3, 3) about it, world[,
+        rho c_p of its material]) or None]]). Over the frame they move linearly between the two;
+        this body's surface particles are kept out of them like out of a moving collider, and where
+        the vertices' lumped masses are given (a BEM body's), those vertices out of this body's
+        surface, if it is closed (a corner between particles;
+        ``kernels.pbd_contact.moving_points_contact``). With the last part the surface yields to
+        the change of this body's push, as a rigid body and elastically
+        (``kernels.pbd_contact.moving_surface_contact``, ``yielding_iteration``); without it it is
+        kinematic over the interval. The momentum that takes is collected per vertex
+        (``moving_surface_impulses``) for the World to hand to their bodies. Called by the World
+        before each ``advance``; an empty list ends the coupling."""
         self._require_bound()
         d = self._device
         masses = [s[5] if len(s) > 5 else None for s in surfaces]
+        rigids = [s[6] if len(s) > 6 else None for s in surfaces]
         if self._surface_closed is None:  # the model's surface is fixed: asked once
             self._surface_closed = len(self.model.faces) > 0 and not wmesh.has_boundary(self.model.faces)
-        layout = [(k, len(p0), len(f), self._surface_closed and m is not None)
-                  for (k, p0, _, f, *_), m in zip(surfaces, masses)]
-        if layout != [(ms.key, ms.p0.shape[0], ms.indices.shape[0] // 3, ms.keep_out) for ms in self._moving]:
+        layout = [(k, len(p0), len(f), self._surface_closed and m is not None, r is not None)
+                  for (k, p0, _, f, *_), m, r in zip(surfaces, masses, rigids)]
+        if layout != [(ms.key, ms.p0.shape[0], ms.indices.shape[0] // 3, ms.keep_out, ms.yielding)
+                      for ms in self._moving]:
             self._graph = None  # the frame's launches change
             self._moving = []
             self._own_surface = self._build_own_surface() if any(lay[3] for lay in layout) else None
@@ -1015,21 +1057,56 @@ class PbdBody(Body):
                 test = wmesh.inside_test(f32)  # ray parity for one watertight piece (a third of the cost)
                 cur = wp.array(np.asarray(p0, dtype=np.float32), dtype=wp.vec3, device=d)
                 indices = wp.array(f32.ravel(), dtype=wp.int32, device=d)
+                V = len(p0)
+                yielding = lay[4]
                 self._moving.append(_MovingSurface(
-                    key=key, p0=wp.zeros(len(p0), dtype=wp.vec3, device=d), p1=wp.zeros(len(p0), dtype=wp.vec3, device=d),
-                    prev=wp.zeros(len(p0), dtype=wp.vec3, device=d), cur=cur,
+                    key=key, p0=wp.zeros(V, dtype=wp.vec3, device=d), p1=wp.zeros(V, dtype=wp.vec3, device=d),
+                    prev=wp.zeros(V, dtype=wp.vec3, device=d), cur=cur,
                     indices=indices,
                     mesh=wp.Mesh(points=cur, indices=indices, support_winding_number=test == 1), friction=float(mu),
-                    reach=0.0, impulse=wp.zeros(len(p0), dtype=wp.vec3d, device=d), closed=test, keep_out=lay[3],
+                    reach=0.0, impulse=wp.zeros(V, dtype=wp.vec3d, device=d), closed=test, keep_out=lay[3],
                     inv_mass_v=wp.array((1.0 / np.asarray(m, dtype=np.float64)).astype(np.float32), dtype=float,
-                                        device=d) if lay[3] else None))
+                                        device=d) if lay[3] else None,
+                    give=wp.zeros(1, dtype=kc.Give, device=d), total=wp.zeros(1, dtype=wp.vec3d, device=d),
+                    count=wp.zeros(2, dtype=wp.int32, device=d), area=wp.zeros(V, dtype=wp.float64, device=d),
+                    yielding=yielding))
+                if yielding:
+                    ms = self._moving[-1]
+                    ms.u, ms.seen, ms.received_v = (wp.zeros(V, dtype=wp.vec3d, device=d) for _ in range(3))
+                    ms.y = wp.zeros(V, dtype=wp.vec3, device=d)
                 # how far from the surface a query looks (a particle deep inside is still found);
                 # fixed with the launches, which a CUDA graph records
                 self._moving[-1].reach = 2.0 * float(np.linalg.norm(np.ptp(p0, axis=0))) + self.contact_margin
-        for ms, (_, p0, p1, *_) in zip(self._moving, surfaces):
+        pushed = self.state.partner_push  # the push of the last interval, which each takes over this one
+        for ms, (_, p0, p1, faces, *_), rigid in zip(self._moving, surfaces, rigids):
             ms.p0.assign(np.asarray(p0, dtype=np.float32))
             ms.p1.assign(np.asarray(p1, dtype=np.float32))
+            if ms.yielding:
+                last = pushed[pushed[:, 0] == ms.key, 1:]
+                contacts = self.state.partner_contacts
+                contacts = contacts[contacts[:, 0] == ms.key, 1]
+                ms.count.assign(np.array([contacts[0] if len(contacts) else 0, 0], dtype=np.int32))
+                self._set_give(ms, np.asarray(p1, dtype=np.float64), faces, rigid, last if len(last) == len(p0) else None)
             ms.impulse.zero_()
+
+    def _set_give(self, ms: _MovingSurface, p1: np.ndarray, faces: np.ndarray, rigid: tuple,
+                  last: np.ndarray | None) -> None:
+        """A yielding surface's give for the coming interval (``kernels.pbd_contact.Give``): its
+        mass and impedance, and the push ``last`` of the interval before, which it takes over
+        this one (``yielding_substep``); its yield starts at zero."""
+        M, _, _, *more = rigid
+        impedance = float(more[0]) if more else 0.0
+        R = np.zeros((len(p1), 3)) if last is None else np.asarray(last, dtype=np.float64)
+        g = kc.Give()
+        g.inv_mass = 1.0 / float(M)
+        g.impedance = impedance if np.isfinite(impedance) else 0.0
+        g.received = wp.vec3d(*R.sum(axis=0))
+        ms.give.assign([g])
+        ms.received_v.assign(R)
+        ms.area.assign(wmesh.vertex_areas(p1, faces))
+        ms.u.zero_()
+        ms.y.zero_()
+        ms.seen.zero_()
 
     def _surface_buffers(self) -> tuple[wp.array, wp.array, int]:
         """The surface's point buffer (refit from the particles before each use), its triangles and
@@ -1057,7 +1134,15 @@ class PbdBody(Body):
     def moving_surface_impulses(self) -> dict[int, np.ndarray]:
         """Momentum [N s] (V, 3) per vertex that each moving surface received from this body over
         the last frame (world axes), by key."""
-        return {ms.key: ms.impulse.numpy() for ms in self._moving}
+        out = {ms.key: ms.impulse.numpy().copy() for ms in self._moving}  # (a view on the CPU)
+        # what yielding partners take over the next interval (``set_moving_surfaces``)
+        yielding = [ms for ms in self._moving if ms.yielding]
+        self.state.partner_push = np.concatenate(
+            [np.zeros((0, 4))] + [np.column_stack([np.full(len(out[ms.key]), float(ms.key)), out[ms.key]])
+                                  for ms in yielding])
+        self.state.partner_contacts = np.array([(ms.key, int(ms.count.numpy()[0])) for ms in yielding],
+                                               dtype=np.int64).reshape(-1, 2)
+        return out
 
     def _substep_end(self, h: float) -> None:
         """Velocities from the positions; the angular momentum restored net of contact."""
