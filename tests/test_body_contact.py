@@ -735,43 +735,28 @@ def test_coupling_interval_is_chosen_and_checked(box_ops):
             world(**kw)
 
 
-def test_checkpoint_in_mid_contact_keeps_the_pending_push(box_ops, tmp_path):
+@pytest.mark.parametrize("coupling", ["auto", "implicit"])
+def test_checkpoint_in_mid_contact_keeps_the_pending_push(box_ops, tmp_path, coupling):
     """A World saved while the PBD ball is pushing the BEM cube (a push still to deliver over the
-    next interval) and restored into a fresh World continues bit for bit on the CPU."""
+    next interval) and restored into a fresh World continues bit for bit on the CPU; with the
+    implicit coupling too (its first guess is the ball's last push, kept in its state, and what
+    the guess missed is pending on the cube)."""
     def world():
-        w = wsim.World(fps=1.0 / (5 * DT), gravity=(0.0, 0.0, 0.0), device="cpu")
+        w = wsim.World(fps=1.0 / (5 * DT), gravity=(0.0, 0.0, 0.0), device="cpu", coupling=coupling)
         w.add(wsim.BemBody(BOX, MAT, DT, operators=box_ops, name="cube", position=(0.2, 0.03, 0.0),
                            velocity=(-1.0, 0.0, 0.0)))
         w.add(wsim.PbdBody(SMALL_BALL, PBD_DENSE, tets="auto", name="ball", position=(-0.15, 0.0, 0.0),
                            velocity=(1.0, 0.0, 0.0)))
         return w
 
-    _resumes_bit_for_bit(world, 9, 0, tmp_path)  # the bodies touch from frame 8 on
+    straight = _resumes_bit_for_bit(world, 9, 0, tmp_path)  # the bodies touch from frame 8 on
+    assert (straight.coupling_stats["implicit_intervals"] > 0) == (coupling == "implicit")
 
 
-def test_checkpoint_in_mid_contact_resumes_the_implicit_coupling(box_ops, tmp_path):
-    """Saved while the PBD ball pushes the BEM cube with the implicit coupling (its first guess is
-    the ball's last push, kept in its state, and what the guess missed is pending on the cube),
-    a World restored into a fresh one continues bit for bit on the CPU."""
-    def world():
-        w = wsim.World(fps=1.0 / (5 * DT), gravity=(0.0, 0.0, 0.0), device="cpu", coupling="implicit")
-        w.add(wsim.BemBody(BOX, MAT, DT, operators=box_ops, name="cube", position=(0.2, 0.03, 0.0),
-                           velocity=(-1.0, 0.0, 0.0)))
-        w.add(wsim.PbdBody(SMALL_BALL, PBD_DENSE, tets="auto", name="ball", position=(-0.15, 0.0, 0.0),
-                           velocity=(1.0, 0.0, 0.0)))
-        return w
-
-    _resumes_bit_for_bit(world, 9, 0, tmp_path)  # the bodies touch from frame 8 on
-    w = world()
-    for _ in range(12):
-        w.step()
-    assert w.coupling_stats["implicit_intervals"] > 0
-
-
-def _resumes_bit_for_bit(world, n: int, pushed: int | None, tmp_path) -> None:
+def _resumes_bit_for_bit(world, n: int, pushed: int | None, tmp_path):
     """``world()`` stepped 2n frames straight equals one saved after n frames (body ``pushed``
     holding a push still to deliver; None: bodies holding active contact rows between them) and
-    restored into a fresh ``world()``, bit for bit."""
+    restored into a fresh ``world()``, bit for bit. Returns the straight World."""
     straight = world()
     for _ in range(2 * n):
         straight.step()
@@ -794,6 +779,7 @@ def _resumes_bit_for_bit(world, n: int, pushed: int | None, tmp_path) -> None:
         assert np.array_equal(a.points(), b.points()), a.name
     if pushed is not None:
         assert np.array_equal(straight.bodies[pushed].coupling_impulse, resumed.bodies[pushed].coupling_impulse)
+    return straight
 
 
 # -- EoL bodies against EoL bodies (one QP, Eq. 29 across objects) and BEM bodies (explicit) ------
