@@ -1157,9 +1157,10 @@ class EolBody(VertexImpulses, Body):
         (``_own_rows_all`` reads it); False when there is nothing to collide with."""
         if not (self._colliders or self._moving):
             return False
-        if self._moving:
+        if self._moving:  # the partners where they are at this step, then their yield (which reads them)
+            self._place_moving()
             self._expect_partners(work.dt_guess)
-        self._collide()
+        self._collide(placed=True)
         self._compact_launch()
         wp.copy(self._n_rows_host, self._n_rows)
         return True
@@ -1430,8 +1431,18 @@ class EolBody(VertexImpulses, Body):
             track_points(self._grid, z3, zs, ys, tol, 20, ys, self._iters, self._device, self._launch)
 
     # -- contact --------------------------------------------------------------------------------
-    def _collide(self) -> None:
-        """Collision: the surface samples inside each collider, binned into rows on the device."""
+    def _place_moving(self) -> None:
+        """Each moving surface where it is at this step (linear over the advance's span), its mesh
+        refit."""
+        t0, t1 = self._span
+        f = self._fraction = min(max((self.state.time - t0) / max(t1 - t0, 1e-300), 0.0), 1.0)
+        for ms in self._moving:
+            self._launch(kc.place_surface, ms.p0.shape[0], [ms.p0, ms.p1, wp.float64(f), ms.cur])
+            ms.mesh.refit()
+
+    def _collide(self, placed: bool = False) -> None:
+        """Collision: the surface samples inside each collider, binned into rows on the device
+        (``placed``: the moving surfaces are already where they are at this step)."""
         d = self._device
         surf = self._surface
         self._place_surface()
@@ -1449,11 +1460,9 @@ class EolBody(VertexImpulses, Body):
                           [surf, col.device_mesh(d).id, wp.mat44d(*np.linalg.inv(M).ravel()),
                                   _mat(M[:3, :3]), float(col.extent), _mat(G), wp.vec3d(*g), ci, col.inside_test,
                                   self._row_acc, self._row_flag])
-        t0, t1 = self._span
-        f = self._fraction = min(max((self.state.time - t0) / max(t1 - t0, 1e-300), 0.0), 1.0)
+        if not placed:
+            self._place_moving()
         for k, ms in enumerate(self._moving):  # other bodies' surfaces, where they are at this step
-            self._launch(kc.place_surface, ms.p0.shape[0], [ms.p0, ms.p1, wp.float64(f), ms.cur])
-            ms.mesh.refit()
             self._launch(kc.surface_rows, surf.sample_face.shape[0],
                       [surf, ms.mesh.id, ms.closed, ms.velocity, float(ms.reach), len(self._colliders) + k,
                               self._row_acc, self._row_flag, ms.hits])
