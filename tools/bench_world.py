@@ -1,5 +1,5 @@
 """Whole-World cost of the contact scenes (issue 18): one JSON line per scene with the bodies by
-method, the coupling intervals, the contacts of the last frame, milliseconds per frame (median
+method, the coupling intervals (and the implicit coupling's intervals and passes, ``World.coupling_stats``), the contacts of the last frame, milliseconds per frame (median
 over the timed frames, after warm-up frames that compile kernels and record graphs), the same
 split by stage (each method's stepping and the explicit "coupling": surface read-backs, broad
 phase, impulse exchange, grouping of EoL bodies that may touch; from a second, profiled pass that synchronizes the device after each
@@ -85,6 +85,8 @@ for name in args.scenes.split(","):
         "bodies": dict(Counter(type(b).__name__ for b in world.bodies)),
         "vertices": int(sum(len(b.points()) for b in world.bodies)),
         "coupling_steps_per_frame": world.coupling_steps, "frame": world.frame,
+        # intervals whose push on a BEM body was found implicitly, their passes, those ended unconverged
+        "implicit_coupling": dict(world.coupling_stats),
         "contacts_last_frame": {"eol_active_rows": int(eol_rows), "coupled_surfaces": int(coupled),
                                 "pbd_lockstep_bodies": len(world._lockstep)},
         "build_s": round(t_build, 3), "ms_per_frame": round(ms, 2),
