@@ -1,5 +1,6 @@
 """Whole-World cost of the contact scenes (issue 18): one JSON line per scene with the bodies by
-method, the coupling intervals (and the implicit coupling's intervals and passes, ``World.coupling_stats``), the contacts of the last frame, milliseconds per frame (median
+method, the coupling intervals (and the implicit coupling's intervals and passes,
+``World.coupling_stats``), the contacts of the last frame, milliseconds per frame (median
 over the timed frames, after warm-up frames that compile kernels and record graphs), the same
 split by stage (each method's stepping and the explicit "coupling": surface read-backs, broad
 phase, impulse exchange, grouping of EoL bodies that may touch; from a second, profiled pass that synchronizes the device after each
