@@ -157,15 +157,28 @@ class Body(ABC):
     def advance(self, t0: float, t1: float) -> None:
         """Advance the state from time t0 to t1 [s] (one frame)."""
 
+    def last_push(self, key: int, n: int) -> np.ndarray | None:
+        """(n, 3) what this body pushed the moving surface ``key`` (of n vertices) with over the
+        last interval, as its state's ``partner_push`` keeps it (a pushing EoL or PBD body), or
+        None: the surface takes it over the coming interval, and the pusher yields to its change."""
+        pushed = self.state.partner_push
+        last = pushed[pushed[:, 0] == key, 1:]
+        return last.copy() if len(last) == n else None
+
+    def _keep_pushes(self, pushes: dict[int, np.ndarray]) -> None:
+        """Keep ``pushes`` (per surface key, (V, 3) [N s]) as the state's ``partner_push``."""
+        self.state.partner_push = np.concatenate(
+            [np.zeros((0, 4))] + [np.column_stack([np.full(len(J), float(k)), np.asarray(J, dtype=np.float64)])
+                                  for k, J in pushes.items()])
+
     def expect_push(self, key: int, impulses: np.ndarray) -> None:
         """Take ``impulses`` (V, 3) [N s] as what the moving surface ``key`` receives over the
-        coming interval (a pusher's ``state.partner_push``, which it yields to the change from;
-        by default what this body pushed it with over the last one): the World's implicit
-        coupling sets its guess this way (``World(coupling=...)``)."""
-        st = self.state
-        rows = st.partner_push[st.partner_push[:, 0] != key]
-        J = np.asarray(impulses, dtype=np.float64)
-        st.partner_push = np.concatenate([rows, np.column_stack([np.full(len(J), float(key)), J])])
+        coming interval (``last_push``, which this body yields to the change from; by default
+        what it pushed it with over the last one): the World's implicit coupling sets its guess
+        this way (``World(coupling=...)``)."""
+        pushed = self.state.partner_push
+        keys = [int(k) for k in dict.fromkeys(pushed[:, 0]) if int(k) != key]
+        self._keep_pushes({**{k: pushed[pushed[:, 0] == k, 1:] for k in keys}, key: impulses})
 
     def check_frames(self, last: int, fps: float) -> None:
         """Raise before a run if this body cannot be stepped up to World frame ``last`` (at ``fps``);

@@ -602,16 +602,13 @@ def _couple_surfaces(pusher: Body, targets: Sequence[Body], index: dict[int, int
     a checkpoint)."""
     from wsim.contact import pair_friction
 
-    x = pusher.points()
-    grow = _max_speed(pusher) * interval + g * interval**2 + getattr(pusher, "contact_margin", 0.0)
-    lo, hi = x.min(axis=0) - grow, x.max(axis=0) + grow
+    box = _reach_box(pusher, pusher.points(), interval, g, getattr(pusher, "contact_margin", 0.0))
     surfaces = []
     for b in targets:
         if id(b) not in end:
             end[id(b)] = b.points()
         p0, p1 = start[id(b)], end[id(b)]
-        if (np.all(np.maximum(p0.max(axis=0), p1.max(axis=0)) >= lo)
-                and np.all(np.minimum(p0.min(axis=0), p1.min(axis=0)) <= hi)):
+        if _overlap(box, (np.minimum(p0.min(axis=0), p1.min(axis=0)), np.maximum(p0.max(axis=0), p1.max(axis=0)))):
             mu = pair_friction(getattr(pusher, "friction", None), getattr(b, "friction", None))
             # a pushed body's vertices are also kept out of a PBD pusher's surface (``VertexImpulses``)
             kept = getattr(b, "vertices_kept_out", False)
@@ -658,30 +655,18 @@ def _mass(body: Body) -> float:
 
 
 def _in_reach(a: Body, b: Body, interval: float, g: float) -> bool:
-    """Whether the surfaces of a and b may meet within the coming interval: their boxes, each
-    grown by how far it can move (``max_speed`` times the interval and the fall under gravity)
-    and a contact margin, overlap."""
-    boxes = []
-    for body in (a, b):
-        x = body.points()
-        if hasattr(body, "max_speed") or hasattr(body, "velocities"):
-            speed = _max_speed(body)
-        else:  # a BEM body: its rigid motion's fastest point, doubled for its deformation
-            omega = np.linalg.solve(body.world_inertia(), body.angular_momentum())
-            r = float(np.linalg.norm(x - body.center_of_mass(), axis=1).max())
-            speed = 2.0 * (float(np.linalg.norm(body.linear_momentum())) / body.mass + float(np.linalg.norm(omega)) * r)
-        grow = speed * interval + g * interval**2 + (getattr(body, "contact_margin", None) or 0.0)
-        boxes.append((x.min(axis=0) - grow, x.max(axis=0) + grow))
-    return bool(np.all(boxes[0][1] >= boxes[1][0]) and np.all(boxes[1][1] >= boxes[0][0]))
+    """Whether the surfaces of a and b may meet within the coming interval (``_reach_box``, each
+    with its contact margin)."""
+    return _overlap(*(_reach_box(body, body.points(), interval, g, getattr(body, "contact_margin", None) or 0.0)
+                      for body in (a, b)))
 
 
 def _last_push(pusher: Body, key: int, target: Body) -> np.ndarray:
-    """(V, 3) what ``pusher`` pushed the body ``key`` with over the last interval (its state's
-    ``partner_push``; zeros if nothing): the implicit coupling's first guess."""
-    pushed = pusher.state.partner_push
-    last = pushed[pushed[:, 0] == key, 1:]
+    """(V, 3) what ``pusher`` pushed the body ``key`` with over the last interval (zeros if
+    nothing): the implicit coupling's first guess."""
     n = len(target.points())
-    return last.copy() if len(last) == n else np.zeros((n, 3))
+    last = pusher.last_push(key, n)
+    return np.zeros((n, 3)) if last is None else last
 
 
 def _touching(bodies: Sequence[Body], interval: float, g: float, points: dict[int, np.ndarray]) -> list[list[Body]]:
@@ -689,17 +674,12 @@ def _touching(bodies: Sequence[Body], interval: float, g: float, points: dict[in
     components of their surfaces' overlapping boxes, each grown by how far it can move:
     ``max_speed`` times the interval, the fall under gravity and a cell); a body alone is a group
     of one. ``points``: the bodies' points where the interval's coupling already read them."""
-    boxes = []
-    for b in bodies:
-        x = points[id(b)] if id(b) in points else b.points()
-        grow = _max_speed(b) * interval + g * interval**2 + b.grid.h
-        boxes.append((x.min(axis=0) - grow, x.max(axis=0) + grow))
+    boxes = [_reach_box(b, points[id(b)] if id(b) in points else b.points(), interval, g, b.grid.h) for b in bodies]
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
     n = len(bodies)
-    links = [(i, j) for i in range(n) for j in range(i + 1, n)
-             if np.all(boxes[i][1] >= boxes[j][0]) and np.all(boxes[j][1] >= boxes[i][0])]
+    links = [(i, j) for i in range(n) for j in range(i + 1, n) if _overlap(boxes[i], boxes[j])]
     i, j = np.array(links, dtype=np.int64).reshape(-1, 2).T
     _, label = connected_components(coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n)), directed=False)
     groups: dict[int, list[Body]] = {}
@@ -709,10 +689,27 @@ def _touching(bodies: Sequence[Body], interval: float, g: float, points: dict[in
 
 
 def _max_speed(body: Body) -> float:
-    """A bound on the speed of a body's points [m/s] (its ``max_speed``, or its fastest particle)."""
+    """A bound on the speed of a body's points [m/s] (its ``max_speed``, its fastest particle, or
+    for a BEM body its rigid motion's fastest point, doubled for its deformation)."""
     if hasattr(body, "max_speed"):
         return body.max_speed()
-    return float(np.linalg.norm(body.velocities(), axis=1).max(initial=0.0))
+    if hasattr(body, "velocities"):
+        return float(np.linalg.norm(body.velocities(), axis=1).max(initial=0.0))
+    omega = np.linalg.solve(body.world_inertia(), body.angular_momentum())
+    r = float(np.linalg.norm(body.points() - body.center_of_mass(), axis=1).max())
+    return 2.0 * (float(np.linalg.norm(body.linear_momentum())) / body.mass + float(np.linalg.norm(omega)) * r)
+
+
+def _reach_box(body: Body, x: np.ndarray, interval: float, g: float, margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """The box of the points x of ``body`` grown by how far they can move within the interval
+    (``_max_speed`` times it and the fall under gravity) and a margin."""
+    grow = _max_speed(body) * interval + g * interval**2 + margin
+    return x.min(axis=0) - grow, x.max(axis=0) + grow
+
+
+def _overlap(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> bool:
+    """Whether boxes (lo, hi) a and b overlap."""
+    return bool(np.all(a[1] >= b[0]) and np.all(b[1] >= a[0]))
 
 
 def _eol_pushes_pbd(pbd: Sequence[Body], eol: Sequence[Body]) -> bool:

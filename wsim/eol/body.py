@@ -981,9 +981,7 @@ class EolBody(VertexImpulses, Body):
                                     closed=wmesh.inside_test(faces))
             # the push of the last advance, which the partner takes over this one: its motion p0 -> p1
             # already carries it (``_react``)
-            pushed = self.state.partner_push
-            last = pushed[pushed[:, 0] == key, 1:]
-            last = last if len(last) == len(p0) else None
+            last = self.last_push(key, len(p0))
             ms.p0_host, ms.p1_host = p0, np.asarray(p1, dtype=np.float64)
             ms.p0.assign(ms.p0_host)
             ms.p1.assign(ms.p1_host)
@@ -1034,8 +1032,7 @@ class EolBody(VertexImpulses, Body):
         the last ``advance`` (world axes), by key."""
         normal = {ms.key: ms.impulse.numpy().copy() for ms in self._moving}  # (a view on the CPU)
         # the normal part is kept: the partner takes it over the next interval (``set_moving_surfaces``)
-        self.state.partner_push = np.concatenate(
-            [np.zeros((0, 4))] + [np.column_stack([np.full(len(J), float(k)), J]) for k, J in normal.items()])
+        self._keep_pushes(normal)
         return {ms.key: normal[ms.key] + ms.friction_impulse for ms in self._moving}
 
     def advance(self, t0: float, t1: float) -> None:

@@ -1077,16 +1077,15 @@ class PbdBody(Body):
                 # how far from the surface a query looks (a particle deep inside is still found);
                 # fixed with the launches, which a CUDA graph records
                 self._moving[-1].reach = 2.0 * float(np.linalg.norm(np.ptp(p0, axis=0))) + self.contact_margin
-        pushed = self.state.partner_push  # the push of the last interval, which each takes over this one
         for ms, (_, p0, p1, faces, *_), rigid in zip(self._moving, surfaces, rigids):
             ms.p0.assign(np.asarray(p0, dtype=np.float32))
             ms.p1.assign(np.asarray(p1, dtype=np.float32))
             if ms.yielding:
-                last = pushed[pushed[:, 0] == ms.key, 1:]
+                last = self.last_push(ms.key, len(p0))  # the last interval's push: it takes it over this one
                 contacts = self.state.partner_contacts
                 contacts = contacts[contacts[:, 0] == ms.key, 1]
                 ms.count.assign(np.array([contacts[0] if len(contacts) else 0, 0], dtype=np.int32))
-                self._set_give(ms, np.asarray(p1, dtype=np.float64), faces, rigid, last if len(last) == len(p0) else None)
+                self._set_give(ms, np.asarray(p1, dtype=np.float64), faces, rigid, last)
             ms.impulse.zero_()
 
     def _set_give(self, ms: _MovingSurface, p1: np.ndarray, faces: np.ndarray, rigid: tuple,
@@ -1137,9 +1136,7 @@ class PbdBody(Body):
         out = {ms.key: ms.impulse.numpy().copy() for ms in self._moving}  # (a view on the CPU)
         # what yielding partners take over the next interval (``set_moving_surfaces``)
         yielding = [ms for ms in self._moving if ms.yielding]
-        self.state.partner_push = np.concatenate(
-            [np.zeros((0, 4))] + [np.column_stack([np.full(len(out[ms.key]), float(ms.key)), out[ms.key]])
-                                  for ms in yielding])
+        self._keep_pushes({ms.key: out[ms.key] for ms in yielding})
         self.state.partner_contacts = np.array([(ms.key, int(ms.count.numpy()[0])) for ms in yielding],
                                                dtype=np.int64).reshape(-1, 2)
         return out
