@@ -230,7 +230,9 @@ def lerp_points(p0: wp.array(dtype=wp.vec3), p1: wp.array(dtype=wp.vec3), s: flo
 class Give:
     """How a moving surface yields to a push (explicit coupling, ``PbdBody.set_moving_surfaces``):
     as a body of inverse mass ``inv_mass`` (0: kinematic) in translation, and elastically with the
-    plane-wave impedance ``impedance`` = rho c_p of its material (0: not at all); ``received``:
+    plane-wave impedance ``impedance`` = rho c_p of its material (0: not at all), over the column
+    of a vertex's patch or, with ``wave_speed`` c_p (0: the column alone), the half-sphere its P
+    wave reaches in the interval where that is more (``elastic_give``); ``received``:
     the momentum of the last coupling interval's push, which the partner takes over this one. On
     the device (one element), so that a recorded frame reads each interval's values. Rotation is
     left out: with the free body's rotational give, a 24 kg PBD box set 3 cm off centre on a 4 kg
@@ -240,17 +242,23 @@ class Give:
 
     inv_mass: wp.float64
     impedance: wp.float64
+    wave_speed: wp.float64
     received: wp.vec3d
 
 
 @wp.func
 def elastic_give(give: Give, area: wp.float64, interval: float) -> wp.float64:
-    """1 / (rho c_p A T): the velocity a patch of area A takes per unit impulse pushed steadily
-    over the coupling interval T (the plane-wave impedance, as in ``EolBody._elastic_give``; 0
-    where there is none)."""
+    """1 / (rho c_p A_e T): the velocity a patch of area A takes per unit impulse pushed steadily
+    over the coupling interval T, the push engaging the material its P wave reaches in T: a column
+    of the patch's area where the wave has not outrun the patch, else a half-sphere of radius
+    c_p T, A_e = max(A, 2 pi / 3 (c_p T)^2) (0 where there is none). The World hands c_p only
+    where it finds the push implicitly (``wsim.world._wave_speed``): explicitly the column's larger
+    give also stands in for the interval's lag."""
     if give.impedance <= wp.float64(0.0) or area <= wp.float64(0.0):
         return wp.float64(0.0)
-    return wp.float64(1.0) / (give.impedance * area * wp.float64(interval))
+    reach = give.wave_speed * wp.float64(interval)
+    engaged = wp.max(area, wp.float64(2.0943951023931953) * reach * reach)
+    return wp.float64(1.0) / (give.impedance * engaged * wp.float64(interval))
 
 
 @wp.func

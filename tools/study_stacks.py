@@ -13,10 +13,11 @@ the top body's lowest point and the bottom body's highest changed [mm] (negative
 tilted in), how far the top's centre moved relative to the bottom's [mm], and the kinetic plus
 gravitational energy of the two at the start of the last two seconds and its largest value in the
 last one [J] (it should not grow: nothing drives the stack; the bodies' elastic energy is not in
-it). ``fell``: the top's centre ended below the bottom's top face.
+it). ``fell``: the top's centre ended below the bottom's top face. ``--coupling``: the World's
+(``World(coupling=...)``).
 
     python tools/study_stacks.py [--pairs bem/pbd,pbd/bem,...] [--ratios 1,5] [--device cpu]
-        [--out tools/results/study_stacks_cpu.jsonl]
+        [--coupling auto] [--out tools/results/study_stacks_cpu.jsonl]
 
 ``bottom/top`` names a pair (``--pairs``; default: the six of different methods).
 """
@@ -68,10 +69,11 @@ def energy(bodies, masses) -> float:
     return float(sum(b.kinetic_energy() + G * m * b.center_of_mass()[1] for b, m in zip(bodies, masses)))
 
 
-def stack(bottom: str, top: str, ratio: float, seconds: float, offset: float, device: str) -> dict:
+def stack(bottom: str, top: str, ratio: float, seconds: float, offset: float, device: str,
+          coupling: str = "auto") -> dict:
     """One stack, stepped ``seconds``; its measures (module docstring)."""
     fps = 1.0 / (5 * DT)
-    w = wsim.World(fps=fps, gravity=(0.0, -G, 0.0), device=device)
+    w = wsim.World(fps=fps, gravity=(0.0, -G, 0.0), device=device, coupling=coupling)
     w.add_collider(wsim.GroundPlane(0.0, friction=0.5))
     lo = cube(w, bottom, 1000.0, "bottom", (0.0, 0.1005, 0.0), device)
     hi = cube(w, top, 1000.0 * ratio, "top", (offset, 0.3015, 0.0), device)
@@ -90,7 +92,8 @@ def stack(bottom: str, top: str, ratio: float, seconds: float, offset: float, de
     e = np.asarray(energies)
     return {
         "bottom": bottom, "top": top, "ratio": ratio, "masses_kg": [round(m, 2) for m in masses],
-        "device": device, "seconds": seconds, "offset_m": offset, "coupling_stats": dict(w.coupling_stats),
+        "device": device, "seconds": seconds, "offset_m": offset, "coupling": coupling,
+        "coupling_stats": dict(w.coupling_stats),
         "mean_speed_last_s_mm_s": [round(1e3 * float(last[:, k].mean()), 2) for k in (0, 1)],
         "peak_speed_last_s_mm_s": [round(1e3 * float(last[:, k].max()), 1) for k in (0, 1)],
         "mean_speed_second_before_mm_s": [round(1e3 * float(before[:, k].mean()), 2) for k in (0, 1)],
@@ -109,12 +112,13 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=3.0)
     ap.add_argument("--offset", type=float, default=0.02)
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--coupling", default="auto", help="World(coupling=...): auto, explicit or implicit")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     for ratio in (float(x) for x in args.ratios.split(",")):
         for pair in args.pairs.split(","):
             bottom, top = pair.split("/")
-            line = json.dumps(stack(bottom, top, ratio, args.seconds, args.offset, args.device))
+            line = json.dumps(stack(bottom, top, ratio, args.seconds, args.offset, args.device, args.coupling))
             print(line, flush=True)
             if args.out:
                 with open(args.out, "a") as f:

@@ -1029,7 +1029,8 @@ class PbdBody(Body):
         """Surfaces of other bodies that move on their own over the coming frame and may touch this
         one: (key, vertices at the frame start (V, 3), at its end (V, 3), faces (M, 3), friction[,
         vertex masses (V,) or None[, (mass, centre of mass (3,), inertia (3, 3) about it, world[,
-        rho c_p of its material]) or None]]). Over the frame they move linearly between the two;
+        rho c_p of its material[, c_p, where the push engages the half-sphere its P wave reaches]])
+        or None]]). Over the frame they move linearly between the two;
         this body's surface particles are kept out of them like out of a moving collider, and where
         the vertices' lumped masses are given (a BEM body's), those vertices out of this body's
         surface, if it is closed (a corner between particles;
@@ -1091,14 +1092,17 @@ class PbdBody(Body):
     def _set_give(self, ms: _MovingSurface, p1: np.ndarray, faces: np.ndarray, rigid: tuple,
                   last: np.ndarray | None) -> None:
         """A yielding surface's give for the coming interval (``kernels.pbd_contact.Give``): its
-        mass and impedance, and the push ``last`` of the interval before, which it takes over
-        this one (``yielding_substep``); its yield starts at zero."""
+        mass, impedance and P-wave speed (``kernels.pbd_contact.elastic_give``), and the push
+        ``last`` of the interval before, which it takes over this one (``yielding_substep``); its
+        yield starts at zero."""
         M, _, _, *more = rigid
         impedance = float(more[0]) if more else 0.0
+        wave_speed = float(more[1]) if len(more) > 1 else 0.0
         R = np.zeros((len(p1), 3)) if last is None else np.asarray(last, dtype=np.float64)
         g = kc.Give()
         g.inv_mass = 1.0 / float(M)
         g.impedance = impedance if np.isfinite(impedance) else 0.0
+        g.wave_speed = wave_speed if np.isfinite(wave_speed) and g.impedance > 0.0 else 0.0
         g.received = wp.vec3d(*R.sum(axis=0))
         ms.give.assign([g])
         ms.received_v.assign(R)
