@@ -228,7 +228,7 @@ def lerp_points(p0: wp.array(dtype=wp.vec3), p1: wp.array(dtype=wp.vec3), s: flo
 
 @wp.struct
 class Give:
-    """How a moving surface yields to a push (explicit coupling, ``PbdBody.set_moving_surfaces``):
+    """How a moving surface yields to a push (coupling across methods, ``PbdBody.set_moving_surfaces``):
     as a body of inverse mass ``inv_mass`` (0: kinematic) in translation, and elastically with the
     plane-wave impedance ``impedance`` = rho c_p of its material (0: not at all), over the column
     of a vertex's patch or, with ``wave_speed`` c_p (0: the column alone), the half-sphere its P
