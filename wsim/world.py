@@ -139,7 +139,6 @@ class World:
         # implicit intervals stepped, their passes, and those that ended at ``coupling_iterations``
         # unconverged (``_advance_implicit``)
         self.coupling_stats = {"implicit_intervals": 0, "passes": 0, "unconverged": 0}
-        self._implicit_targets: set[int] = set()  # ids of the BEM bodies whose push a pass finds implicitly
         if coupling_dt is not None:
             c = finite_number(coupling_dt, "World: coupling_dt [s]")
             k = int(round(self.frame_dt / c)) if c > 0.0 else 0
@@ -335,7 +334,7 @@ class World:
             if near:
                 self._advance_implicit(t0, t1, [b for b in self._pushed if id(b) in near])
                 return
-        self._step_interval(t0, t1, exchange=True)
+        self._step_interval(t0, t1)
 
     def _advance_implicit(self, t0: float, t1: float, targets: list[Body]) -> None:
         """One coupling interval with the pushes on the BEM bodies ``targets`` found implicitly
@@ -360,37 +359,34 @@ class World:
         omega, r_last = _OMEGA_0, None
         stats = self.coupling_stats
         stats["implicit_intervals"] += 1
-        self._implicit_targets = {id(b) for b in targets}  # their elastic give (``_wave_speed``)
-        try:
-            for it in range(self.coupling_iterations):
-                # every pass from the saved state (the first too: a restored state's derived values
-                # may differ from the live ones in their last bits, and each pass should depend on the
-                # guess alone)
-                for body, st in zip(self.bodies, saved):
-                    body.set_state(st)
-                for k in keys:
-                    on_k = [g for (_, kk), g in zip(pairs, guess) if kk == k]
-                    self.bodies[k].add_vertex_impulses(np.sum(on_k, axis=0), T, keep_pending=True)
-                for (p, k), g in zip(pairs, guess):  # what the target takes over this interval, as this pusher's
-                    p.expect_push(k, g + pending[k] / sharing[k])
-                self._step_interval(t0, t1, exchange=False)
-                stats["passes"] += 1
-                pushed = {id(p): p.moving_surface_impulses() for p in pushers}
-                J = [pushed[id(p)].get(k, np.zeros_like(g)) for (p, k), g in zip(pairs, guess)]
-                r = np.concatenate([(j - g).ravel() for j, g in zip(J, guess)])
-                size = np.linalg.norm(np.concatenate([j.ravel() for j in J]))
-                if np.linalg.norm(r) <= self.coupling_tol * size + 1e-12:
-                    break
-                if it == self.coupling_iterations - 1:
-                    stats["unconverged"] += 1
-                    break
-                if r_last is not None:  # Aitken: omega from the last two residuals
-                    dr = r - r_last
-                    omega = float(np.clip(-omega * np.dot(r_last, dr) / max(np.dot(dr, dr), 1e-300), 0.1, 1.0))
-                r_last = r
-                guess = [g + omega * (j - g) for j, g in zip(J, guess)]
-        finally:
-            self._implicit_targets = set()
+        implicit = frozenset(id(b) for b in targets)  # their elastic give to PBD pushers (``_wave_speed``)
+        for it in range(self.coupling_iterations):
+            # every pass from the saved state (the first too: a restored state's derived values
+            # may differ from the live ones in their last bits, and each pass should depend on the
+            # guess alone)
+            for body, st in zip(self.bodies, saved):
+                body.set_state(st)
+            for k in keys:
+                on_k = [g for (_, kk), g in zip(pairs, guess) if kk == k]
+                self.bodies[k].add_vertex_impulses(np.sum(on_k, axis=0), T, keep_pending=True)
+            for (p, k), g in zip(pairs, guess):  # what the target takes over this interval, as this pusher's
+                p.expect_push(k, g + pending[k] / sharing[k])
+            self._step_interval(t0, t1, implicit)
+            stats["passes"] += 1
+            pushed = {id(p): p.moving_surface_impulses() for p in pushers}
+            J = [pushed[id(p)].get(k, np.zeros_like(g)) for (p, k), g in zip(pairs, guess)]
+            r = np.concatenate([(j - g).ravel() for j, g in zip(J, guess)])
+            size = np.linalg.norm(np.concatenate([j.ravel() for j in J]))
+            if np.linalg.norm(r) <= self.coupling_tol * size + 1e-12:
+                break
+            if it == self.coupling_iterations - 1:
+                stats["unconverged"] += 1
+                break
+            if r_last is not None:  # Aitken: omega from the last two residuals
+                dr = r - r_last
+                omega = float(np.clip(-omega * np.dot(r_last, dr) / max(np.dot(dr, dr), 1e-300), 0.1, 1.0))
+            r_last = r
+            guess = [g + omega * (j - g) for j, g in zip(J, guess)]
         # what the guess missed reaches the targets over the next interval; pushes on other bodies
         # are handed over as in the explicit coupling
         impulses: dict[int, np.ndarray] = {}
@@ -402,7 +398,10 @@ class World:
         for key, Jk in impulses.items():
             self.bodies[key].add_vertex_impulses(Jk, T)
 
-    def _step_interval(self, t0: float, t1: float, exchange: bool) -> None:
+    def _step_interval(self, t0: float, t1: float, implicit: frozenset[int] | None = None) -> None:
+        """Step every body over the interval; the pushes are handed over after it (explicit
+        coupling), unless this is a pass of ``_advance_implicit`` (``implicit``: the ids of the BEM
+        bodies whose push it finds)."""
         grouped = {id(b) for bodies, _ in self._groups for b in bodies} | {id(b) for b in self._lockstep}
         pushers = self._pushers
         late = {id(b) for b in pushers} | {id(b) for b in self._eol}
@@ -425,15 +424,14 @@ class World:
         # ... then the PBD and EoL bodies, the pushed of the two methods first (``_eol_pushes_pbd``)
         order = (self._step_eol, self._step_pbd) if self._eol_first else (self._step_pbd, self._step_eol)
         for stage in order:
-            stage(t0, t1, start, end, g)
-        if coupled and exchange:
+            stage(t0, t1, start, end, g, implicit or frozenset())
+        if coupled and implicit is None:
             self._timed("coupling", self._exchange, t1 - t0)
 
-    def _step_pbd(self, t0: float, t1: float, start: dict, end: dict, g: float) -> None:
+    def _step_pbd(self, t0: float, t1: float, start: dict, end: dict, g: float, implicit: frozenset[int]) -> None:
         """The PBD bodies that push (with their targets' surfaces) and those in lockstep."""
         pushers = self._pushers
         lockstep = {id(b) for b in self._lockstep}
-        implicit = frozenset(self._implicit_targets)
         for p in pushers:
             self._timed("coupling", _couple_surfaces, p, self._targets[id(p)], self._index, start, end, t1 - t0, g,
                         implicit)
@@ -442,8 +440,9 @@ class World:
         if self._lockstep:
             self._timed("pbd", type(self._lockstep[0]).advance_together, self._lockstep, t0, t1, self._lockstep_graphs)
 
-    def _step_eol(self, t0: float, t1: float, start: dict, end: dict, g: float) -> None:
-        """The EoL bodies (with their targets' surfaces), those that may touch in one group each."""
+    def _step_eol(self, t0: float, t1: float, start: dict, end: dict, g: float, implicit: frozenset[int]) -> None:
+        """The EoL bodies (with their targets' surfaces), those that may touch in one group each
+        (``implicit`` is the PBD stage's: EoL rows keep the column's elastic give)."""
         if self._eol:
             for p in self._eol:
                 if self._targets[id(p)]:
@@ -658,8 +657,9 @@ def _wave_speed(body: Body) -> float:
     With the column alone, a 24 kg, 98-vertex PBD box rocking 3 cm off centre on a 4 kg BEM cube
     gained 2.1 J by 2 s (the surface's elastic yield did +6.7 J of work on it over 2 s, its
     own motion -4.1 J: an independent check's energy accounts); with the half-sphere its energy
-    stays within 0.08 J (74.07-74.14 J over 3 s). Explicitly the column stays: there the give also stands in for the
-    lag, and with the half-sphere the 24 kg, 386-vertex box moved 9.9 mm at 83 mm/s."""
+    stays within 0.08 J (74.07-74.14 J over 3 s). Explicitly the column stays: there the give
+    also stands in for the lag, and with the half-sphere the 24 kg, 386-vertex box moved 9.9 mm
+    at 83 mm/s."""
     return float(body.material.c1)
 
 
