@@ -91,10 +91,11 @@ class World:
             (``coupling_tol``, at most ``coupling_iterations`` passes; what is left over reaches
             them in the next interval, so momentum stays exact; each pass runs the bodies'
             handle motions and loads over the interval again). "auto" (default): implicit for the
-            intervals in which an EoL body at least twice as heavy as a BEM body
+            intervals in which a PBD or EoL body at least twice as heavy as a BEM body
             (``IMPLICIT_MASS_RATIO``) may touch it (one interval late, a heavier pusher hands back
             the overshoot of each push: an 8 kg BEM cube on a 48 kg EoL slab shook at 23 mm/s,
-            1.0 implicitly), explicit otherwise.
+            1.0 implicitly; a 24 kg, 98-vertex PBD box rocking on a 4 kg cube gained 0.45 J in
+            2 s, 0.08 implicitly), explicit otherwise.
         coupling_tol: the implicit coupling's tolerance: the change of the push between passes
             relative to the push (root mean square over every pushed vertex).
         coupling_iterations: the implicit coupling's passes per interval at most.
@@ -255,18 +256,11 @@ class World:
             self._targets = {id(p): [b for b in self._pushed if pushes(p, b)] for p in pushers}
             self._pushers = [p for p in pushers if self._targets[id(p)] and id(p) not in eol]  # PBD
             # pushers of BEM bodies whose push the implicit coupling iterates (``_advance_implicit``):
-            # automatically EoL bodies at least ``IMPLICIT_MASS_RATIO`` times as heavy as the BEM
-            # body. Not PBD bodies, whose particles already share each correction with the BEM
-            # body's give (``PbdBody.set_moving_surfaces``): iterated, a 24 kg PBD box set 3 cm off
-            # centre on a 4 kg BEM cube rang down more slowly (13 mm/s after 3 s against 4.4
-            # explicitly, at 2.4 passes an interval; with the half-sphere's elastic give,
-            # ``_wave_speed``, 23.5 mm/s over the second second against 13, where a 48 kg box on an
-            # 8 kg cube rings down instead of gaining energy: ``World(coupling="implicit")`` for
-            # such stacks)
+            # automatically PBD and EoL bodies at least ``IMPLICIT_MASS_RATIO`` times as heavy as
+            # the BEM body (one interval late, a heavier pusher hands back the overshoot of each push)
             self._implicit = [(p, b) for p in pushers for b in self._targets[id(p)] if hasattr(b, "constraint_begin")
                               and (self.coupling == "implicit"
-                                   or (self.coupling == "auto" and id(p) in eol
-                                       and _mass(p) >= IMPLICIT_MASS_RATIO * _mass(b)))]
+                                   or (self.coupling == "auto" and _mass(p) >= IMPLICIT_MASS_RATIO * _mass(b)))]
             if self.body_contact:  # bodies that can touch: participants of one dt
                 by_dt: dict[float, list[Body]] = {}
                 for b in self.bodies:
@@ -667,10 +661,14 @@ def _wave_speed(body: Body) -> float:
 #: the 48 kg EoL slab took 3.2 passes an interval from 0.5, 3.9 from 1
 _OMEGA_0 = 0.5
 
-#: ``coupling="auto"``: an EoL body this many times as heavy as a BEM body it may touch has its push
-#: found implicitly. An 8 kg BEM cube on a 48 kg EoL slab shook at 23 mm/s with the push handed over
-#: one interval late and 1.0 mm/s implicitly (3.2 passes an interval), a 0.8 kg cube 8.6 and 3.8 mm/s;
-#: but an 8 kg EoL box on the 8 kg cube rested better explicitly (0.46 mm/s against 2.6)
+#: ``coupling="auto"``: a PBD or EoL body this many times as heavy as a BEM body it may touch has its
+#: push found implicitly. An 8 kg BEM cube on a 48 kg EoL slab shook at 23 mm/s with the push handed
+#: over one interval late and 1.0 mm/s implicitly (3.2 passes an interval), a 0.8 kg cube 8.6 and
+#: 3.8 mm/s; PBD boxes 3 cm off centre on BEM cubes six times lighter gained energy handed over late
+#: (a 98-vertex 24 kg box 0.45 J in 2 s, a 386-vertex 48 kg box 3.0 J in 4 s) and ring down
+#: iterated, though a 386-vertex 24 kg box more slowly (23.5 mm/s over its second second against
+#: 13.3: the lag damped it). Lighter pushers rest better explicitly: an 8 kg EoL box on the 8 kg
+#: cube (0.46 mm/s against 2.6), a coarse 8 kg PBD box (1.2 against 23.5)
 IMPLICIT_MASS_RATIO = 2.0
 
 
