@@ -339,16 +339,22 @@ class World:
         hand over differ from the guess by more than ``coupling_tol``, every body is restored
         and the interval stepped again from a guess moved towards them (Aitken's relaxation of
         the fixed point, as in partitioned fluid-structure coupling: the first guess is each
-        pusher's push of the interval before). The pushes' difference from the last guess is
+        pusher's push of the interval before, less what is still pending from it). The pushes' difference from the last guess is
         handed over after the interval, as an explicit push (momentum exact)."""
         T = t1 - t0
         keys = [self._index[id(b)] for b in targets]
         pushers = [p for p in self._pushers + [e for e in self._eol if self._targets[id(e)]]
                    if any(b in targets for b in self._targets[id(p)])]
         pairs = [(p, k) for p in pushers for k in keys if self.bodies[k] in self._targets[id(p)]]
-        guess = [_last_push(p, k, self.bodies[k]) for p, k in pairs]  # per pair (V_k, 3): targets' meshes differ
         pending = {k: self.bodies[k].pending_vertex_impulses() for k in keys}
         sharing = {k: sum(kk == k for _, kk in pairs) for k in keys}
+        # the first guess: each pusher's push of the interval before, less its share of what is
+        # still pending (an unconverged interval's leftover), so that the first pass hands the
+        # target what the explicit coupling would. The push alone, with the leftover on top,
+        # extrapolates: an 8 kg BEM cube resting on a 48 kg PBD slab was flung at 4-6 m/s with
+        # ``coupling_iterations`` 2 or 3 (now 45 and 2.4 mm/s; 1.1 at 6, against 1.9 before)
+        guess = [_last_push(p, k, self.bodies[k]) - pending[k] / sharing[k]
+                 for p, k in pairs]  # per pair (V_k, 3): targets' meshes differ
         saved = [b.get_state() for b in self.bodies]
         omega, r_last = _OMEGA_0, None
         stats = self.coupling_stats
