@@ -249,6 +249,29 @@ def test_bem_cube_rests_on_a_heavy_pbd_slab(box_ops, iterations, bound):
     assert np.mean(rel[50:]) < bound, np.mean(rel[50:])
 
 
+def test_pending_push_is_shared_by_the_pushers_that_pushed_where_it_is():
+    """``World._advance_implicit``'s first guess takes each pusher's share of what is still pending
+    on the target out of its last push (``wsim.world._pending_shares``): at each vertex in
+    proportion to the pushers' last pushes there, among the pushers that pushed at all where none
+    pushed that vertex, and among those near the target where none pushed it; the shares add up
+    to what is pending, and a pusher that did not push and is not near holds none."""
+    from wsim.world import _pending_shares
+
+    a, b, far = object(), object(), object()
+    pairs = [(a, 0), (b, 0), (far, 0)]
+    last = [np.array([[0.0, 2.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]),
+            np.array([[0.0, 0.0, 0.0], [0.0, 3.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]]),
+            np.zeros((4, 3))]
+    pending = {0: np.array([[0.0, 0.4, 0.0], [0.0, 0.8, 0.0], [0.2, 0.0, 0.0], [0.0, 0.0, 0.6]])}
+    shares = _pending_shares(pairs, last, pending, lambda j: j == 2)
+    assert np.allclose(sum(shares), pending[0])
+    assert np.allclose(shares[0][:, 1], [0.4, 0.2, 0.0, 0.0]) and np.allclose(shares[1][:, 1], [0.0, 0.6, 0.0, 0.0])
+    assert np.allclose(shares[1][2], [0.2, 0.0, 0.0]) and not shares[2].any()
+    assert np.allclose(shares[0][3], [0.0, 0.0, 0.3]) and np.allclose(shares[1][3], [0.0, 0.0, 0.3])  # none pushed it
+    none = _pending_shares(pairs, [np.zeros((4, 3))] * 3, pending, lambda j: j == 2)  # a bounce: the near one
+    assert np.allclose(none[2], pending[0]) and not none[0].any() and not none[1].any()
+
+
 def test_body_contact_can_be_switched_off(box_ops):
     world = wsim.World(fps=1.0 / DT, device="cpu", gravity=(0.0, 0.0, 0.0), body_contact=False)
     a = world.add(wsim.BemBody(BOX, MAT, DT, operators=box_ops, name="a", position=(-0.15, 0.0, 0.0),
