@@ -266,7 +266,7 @@ class World:
                                    or (self.coupling == "auto" and _mass(p) >= IMPLICIT_MASS_RATIO * _mass(b)))]
             # and, automatically, a lighter PBD pusher in the intervals after it carried a BEM body's
             # weight (``_supports``): each interval's push from a few particles' contacts, handed over
-            # late, kicked an 8 kg BEM cube resting on an 8 kg PBD slab at 10 mm/s (0.3 found within
+            # late, kicked an 8 kg BEM cube resting on an 8 kg PBD slab at 10 mm/s (0.6-1.1 found within
             # the interval); an EoL body's QP push does not (an 8 kg BEM cube on an 8 kg EoL box
             # rests at 0.1 mm/s handed over late)
             self._supported = [(p, b) for p in pushers if id(p) in pbd for b in self._targets[id(p)]
