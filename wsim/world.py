@@ -269,9 +269,10 @@ class World:
             # late, kicked an 8 kg BEM cube resting on an 8 kg PBD slab at 10 mm/s (0.6-1.1 found within
             # the interval); an EoL body's QP push does not (an 8 kg BEM cube on an 8 kg EoL box
             # rests at 0.1 mm/s handed over late)
+            iterated = {(id(p), id(b)) for p, b in self._implicit}
             self._supported = [(p, b) for p in pushers if id(p) in pbd for b in self._targets[id(p)]
                                if hasattr(b, "constraint_begin") and self.coupling == "auto"
-                               and not any(p is q and b is c for q, c in self._implicit)]
+                               and (id(p), id(b)) not in iterated]
             if self.body_contact:  # bodies that can touch: participants of one dt
                 by_dt: dict[float, list[Body]] = {}
                 for b in self.bodies:
@@ -708,7 +709,7 @@ def _supports(pusher: Body, key: int, target: Body, gravity: np.ndarray, interva
     g = float(np.linalg.norm(gravity))
     if g == 0.0:
         return False
-    last = pusher.last_push(key, len(target.points()))
+    last = pusher.last_push(key, len(target.rest_vertices))  # (not points(): no device read-back each interval)
     if last is None:
         return False
     return float(-(last.sum(axis=0) @ gravity) / g) >= SUPPORT_FRACTION * _mass(target) * g * interval
@@ -737,15 +738,16 @@ def _pending_shares(pairs: list[tuple[Body, int]], last: list[np.ndarray], pendi
     leftover of the one that touched, and changed the result; holding none where none pushed
     flung the 8 kg BEM cube off the 48 kg PBD slab at 2 passes an interval (the leftover on top
     of a zero guess)."""
-    shares: list[np.ndarray] = []
-    for i, (_, k) in enumerate(pairs):
+    shares: list[np.ndarray] = [np.zeros(0)] * len(pairs)
+    mag = [np.linalg.norm(push, axis=1) for push in last]
+    for k in dict.fromkeys(k for _, k in pairs):  # each target once, its pushers together
         same = [j for j, (_, kk) in enumerate(pairs) if kk == k]
-        mag = {j: np.linalg.norm(last[j], axis=1) for j in same}
-        total = sum(mag.values())
+        total = np.sum([mag[j] for j in same], axis=0)
         touching = [j for j in same if mag[j].any()] or [j for j in same if near(j)] or same
-        even = (1.0 / len(touching)) if i in touching else 0.0
-        weight = np.where(total > 0.0, mag[i] / np.where(total > 0.0, total, 1.0), even)
-        shares.append(pending[k] * weight[:, None])
+        for j in same:
+            even = (1.0 / len(touching)) if j in touching else 0.0
+            weight = np.where(total > 0.0, mag[j] / np.where(total > 0.0, total, 1.0), even)
+            shares[j] = pending[k] * weight[:, None]
     return shares
 
 
