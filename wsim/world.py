@@ -84,7 +84,9 @@ class World:
         body_contact: bodies touch each other: BEM bodies of one dt (``wsim.contact``, one
             constraint solve per step), PBD bodies (``wsim.pbd.contact``, substeps in lockstep),
             EoL bodies (one QP, ``wsim.eol.pairs``) and every pair across methods (explicit
-            coupling, ``coupling_dt``); False lets them pass through each other.
+            coupling, ``coupling_dt``); False lets them pass through each other. BEM bodies of
+            different dt cannot touch each other: a frame in which they may raises
+            ``InvalidParameter`` (the frames before it are kept).
         coupling: how a PBD or EoL body's push reaches a BEM body. "explicit": one interval late.
             "implicit": within the interval - the interval is stepped again, every body restored,
             until the push the pushers hand over matches the guess the BEM bodies stepped with
@@ -273,12 +275,15 @@ class World:
             self._supported = [(p, b) for p in pushers if id(p) in pbd for b in self._targets[id(p)]
                                if hasattr(b, "constraint_begin") and self.coupling == "auto"
                                and (id(p), id(b)) not in iterated]
+            self._apart: list[tuple[Body, Body]] = []  # BEM bodies that cannot touch (``_check_apart``)
             if self.body_contact:  # bodies that can touch: participants of one dt
                 by_dt: dict[float, list[Body]] = {}
                 for b in self.bodies:
                     if hasattr(b, "constraint_begin"):
                         by_dt.setdefault(round(float(b.dt), 15), []).append(b)
                 links = [(g[0], b) for g in by_dt.values() for b in g[1:]]
+                groups = list(by_dt.values())
+                self._apart = [(a, b) for i, g in enumerate(groups) for h in groups[i + 1:] for a in g for b in h]
             self._groups = _joint_groups(self.joints, links)
             # bodies that step together (``_step_sets``: BEM bodies on one operator set, PBD bodies
             # in one launch set): sets within each group, and sets of the bodies no group steps
@@ -311,6 +316,8 @@ class World:
 
     def _advance_frame(self) -> None:
         self._bind()
+        if self._apart:
+            self._check_apart()
         self.surfaces.new_frame(self.frame + 1)
         k = self.coupling_steps
         if k > 1:  # bodies that take no part in contact step the whole frame at once
@@ -320,6 +327,19 @@ class World:
         for i in range(k):  # coupling intervals of the frame
             self._advance_interval((self.frame * k + i) / (self.fps * k), (self.frame * k + i + 1) / (self.fps * k))
         self.frame += 1
+
+    def _check_apart(self) -> None:
+        """Raise before a frame in which BEM bodies of different dt may touch: contact between BEM
+        bodies is a constraint solve per step of bodies that step together, and no exchange between
+        BEM bodies of different steps exists, so they would pass through each other unnoticed."""
+        g = float(np.linalg.norm(self.gravity))
+        for a, b in self._apart:
+            if _in_reach(a, b, self.frame_dt, g):
+                raise InvalidParameter(
+                    f"World: BEM bodies '{a.name}' (dt = {float(a.dt):.6g} s) and '{b.name}' (dt = {float(b.dt):.6g} s) "
+                    f"may touch in frame {self.frame + 1} (t = {self.time:.6g} s), but BEM bodies touch only bodies "
+                    f"of their own dt (one constraint solve per step): give them one dt, or pass "
+                    f"World(body_contact=False) to let bodies pass through each other")
 
     def _timed(self, stage: str, fn: Callable, *args) -> Any:
         """Run fn(*args) and add its seconds to ``timings[stage]`` (after a device synchronization
