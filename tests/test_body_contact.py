@@ -744,18 +744,27 @@ def test_bem_cube_rests_on_a_coarse_pbd_box(box_ops, monkeypatch, subdivisions, 
         assert deepest > 1e-3
 
 
-@pytest.mark.parametrize("rho, kept_out", [(800.0, True), (5000.0, True), (5000.0, False)],
-                         ids=["eol_pushes", "pbd_pushes_kept_out", "pbd_pushes_particles_only"])
-def test_eol_cube_rests_on_a_coarse_pbd_box(monkeypatch, rho, kept_out):
-    """An EoL cube (5 cells) set on the 98-vertex PBD box (6.5 kg) resting on the ground. A 1.4 kg
-    cube is the lighter: it pushes the box, its rows taking the box's give and the box's vertices
-    inside it (``World._eol_pushes_pbd``, ``kernels.eol_contact.vertex_rows``): no cube vertex goes
-    1.5 mm into the box over 0.5 s (measured 0.32 mm) and it stays on top (centroid within 5 mm:
-    2.6). An 8.6 kg cube is pushed by the box, whose particles keep out of it and keep its
-    vertices out of the box's surface, shared by mass as for a BEM body: 1.37 mm deep, centroid
-    within 10 mm (6.0: the soft box gives under it); with only the particles kept out its edges
-    sink between them (45.6 mm)."""
+@pytest.mark.parametrize("rho, kept_out, pusher", [(800.0, True, None), (5000.0, True, None), (5000.0, True, "pbd"),
+                                                    (5000.0, False, "pbd")],
+                         ids=["eol_pushes", "heavy_eol_pushes", "pbd_pushes_kept_out", "pbd_pushes_particles_only"])
+def test_eol_cube_rests_on_a_coarse_pbd_box(monkeypatch, rho, kept_out, pusher):
+    """An EoL cube (5 cells) set on the 98-vertex PBD box (6.5 kg) resting on the ground. The cube
+    pushes the box (``wsim.world._eol_pushes_pbd``: no PBD body lighter than an EoL body rests on
+    it), its rows taking the box's give and the box's vertices inside it
+    (``kernels.eol_contact.vertex_rows``). A 1.4 kg cube: no cube vertex goes 1.5 mm into the box
+    over 0.5 s (measured 0.32 mm) and it stays on top (centroid within 5 mm: 2.6). An 8.6 kg cube,
+    the heavier, over 1 s: 1.6 mm deep (0.07 of its 2.4 cm cells) as the soft box gives under it
+    (centroid 5.6 mm down), then at rest (mean speed over the second half second 1.7 mm/s) with
+    its energy flat (the kinetic, gravitational and elastic energy of the two within 0.003 J of
+    what they were half a second in). Pushed by the box, as it was when the lighter body pushed
+    (``pusher="pbd"``), it shook at 9-16 mm/s and the pair's energy rose 0.3 J, and a 23 kg EoL
+    cube on a 7.6 kg box gained 4 J a second and walked off (an independent check). The box's
+    push keeps the cube's vertices out of its surface, shared by mass as for a BEM body: 1.37 mm
+    deep, centroid within 10 mm (6.0); with only the particles kept out its edges sink between
+    them (45.6 mm)."""
     monkeypatch.setattr(wsim.EolBody, "vertices_kept_out", kept_out)
+    if pusher == "pbd":
+        monkeypatch.setattr(wsim.world, "_eol_pushes_pbd", lambda *args, **kwargs: False)
     w = wsim.World(fps=60, gravity=(0.0, -G, 0.0), device="cpu")
     w.add_collider(wsim.GroundPlane(0.0, friction=0.5))
     box = trimesh.creation.box(extents=(0.3, 0.12, 0.3)).subdivide().subdivide()
@@ -764,13 +773,27 @@ def test_eol_cube_rests_on_a_coarse_pbd_box(monkeypatch, rho, kept_out):
     cube = trimesh.creation.box(extents=(0.12, 0.12, 0.12)).subdivide().subdivide()
     top = w.add(wsim.EolBody(cube, wsim.ElasticMaterial(E=2e5, nu=0.3, rho=rho), resolution=5, name="top",
                              position=(0.03, 0.1815, 0.0), damping=50.0))
+    heavy = rho > 1000.0 and pusher is None
     c0 = top.points().mean(axis=0)
-    deepest = 0.0
-    for _ in range(30):
+    m = top.node_masses().sum()
+
+    def energy() -> float:
+        return (low.kinetic_energy() + G * low.mass * low.center_of_mass()[1] + top.kinetic_energy()
+                + G * m * top.center_of_mass()[1] + top.elastic_energy)
+
+    deepest, energies, speeds = 0.0, [], []
+    for f in range(60 if heavy else 30):
         w.step()
         deepest = max(deepest, _depth(low, top))
+        energies.append(energy())
+        speeds.append(float(np.linalg.norm(top.linear_momentum())) / m)
     moved = np.linalg.norm(top.points().mean(axis=0) - c0)
-    if kept_out:
+    assert w._eol_pushes == (pusher is None)
+    if heavy:
+        assert deepest < 2.5e-3 and moved < 1e-2
+        assert np.mean(speeds[30:]) < 5e-3
+        assert max(energies[30:]) - energies[29] < 0.05
+    elif kept_out:
         assert deepest < 1.5e-3 and moved < (5e-3 if rho < 1000.0 else 1e-2)
     else:
         assert deepest > 3e-3
@@ -778,7 +801,7 @@ def test_eol_cube_rests_on_a_coarse_pbd_box(monkeypatch, rho, kept_out):
 
 def test_light_eol_box_rests_on_a_heavy_pbd_slab():
     """A 1 kg EoL box (8 cells, damping 20) set 1 mm above a 32 kg PBD slab on the ground. The EoL
-    body is the lighter, so its QP pushes the slab with the slab's give (``World._eol_pushes_pbd``)
+    body rests on the slab, so its QP pushes the slab with the slab's give (``wsim.world._eol_pushes_pbd``)
     and the slab's vertices inside the box enter its rows: the box lands and rests (mean speed
     over the last 0.2 s under 5 mm/s, measured 0.72; its bottom within 2 mm of the slab's top,
     measured 0.6 mm into the sagging slab). Pushed by the slab's particles, which took its
