@@ -161,11 +161,18 @@ def body_contacts(surfaces: Sequence[tuple[Any, np.ndarray, np.ndarray, np.ndarr
     inside test ``wsim.mesh.inside_test``)), except the pairs in ``skip`` (frozensets of the two
     bodies' ids).
 
-    Each surface is queried once (one mesh built, one launch) with the nodes of every partner near
-    it: a point's answer does not depend on the others queried with it, so the contacts are those
-    of one query per pair and direction, in the same order."""
+    The points of a surface that press on another are its nodes and its faces' centroids
+    (``surface_points``): with nodes alone, two coarse surfaces touch only where a node of one
+    lies over a face of the other, and two 8-node cubes (``trimesh.creation.box``) stacked corner
+    over corner slid down each other's edges (on the edge planes, no face held them) until the top
+    one lay on the ground inside the other, and stacked 2 cm off had two supports on a diagonal
+    and tipped into it. Each surface is queried once (one mesh built, one launch) with the
+    points of every partner near it: a point's answer does not depend on the others queried
+    with it, so the contacts are those of one query per pair and direction, in the same order
+    (per pair: the nodes, then the centroids)."""
     boxes = [(V.min(axis=0) - margin, V.max(axis=0) + margin) for _, V, *_ in surfaces]
-    queries: dict[int, list[tuple[int, np.ndarray]]] = {}  # face surface -> (point surface, its near nodes)
+    points = [surface_points(V, F, X) for _, V, F, X, *_ in surfaces]
+    queries: dict[int, list[tuple[int, np.ndarray]]] = {}  # face surface -> (point surface, its near points)
     order: list[tuple[int, int, float]] = []  # (points, faces, friction) in the output's order
     for i in range(len(surfaces)):
         for j in range(i + 1, len(surfaces)):
@@ -177,40 +184,84 @@ def body_contacts(surfaces: Sequence[tuple[Any, np.ndarray, np.ndarray, np.ndarr
             mu = pair_friction(surfaces[i][4], surfaces[j][4])
             for p, f in ((i, j), (j, i)):
                 lo, hi = boxes[f]
-                V_p = surfaces[p][1]
-                near = np.flatnonzero(np.all((V_p >= lo) & (V_p <= hi), axis=1))
+                P = points[p].V
+                near = np.flatnonzero(np.all((P >= lo) & (P <= hi), axis=1))
                 if len(near):
                     queries.setdefault(f, []).append((p, near))
                     order.append((p, f, mu))
     found: dict[tuple[int, int], tuple] = {}
-    own: dict[int, np.ndarray] = {}  # outward vertex normals of the point surfaces, made when needed
     for f, asked in queries.items():
         _, V_f, F_f, _, _, test = surfaces[f]
-        hit, face, bary, normal = points_inside(np.concatenate([surfaces[p][1][near] for p, near in asked]),
+        hit, face, bary, normal = points_inside(np.concatenate([points[p].V[near] for p, near in asked]),
                                                 V_f, F_f, margin, device, test)
         start = 0
         for p, near in asked:
             mine = (hit >= start) & (hit < start + len(near))
-            nodes, fc, bc, nc = near[hit[mine] - start], face[mine], bary[mine], normal[mine]
-            if len(nodes):
-                _, V_p, F_p, X_p, *_ = surfaces[p]
-                if p not in own:
-                    own[p] = vertex_normals(V_p, F_p)
-                # how deep a node can be behind a face it came through: its own and the face's
+            idx, fc, bc, nc = near[hit[mine] - start], face[mine], bary[mine], normal[mine]
+            if len(idx):
+                sp_ = points[p]
+                # how deep a point can be behind a face it came through: its own and the face's
                 # motion over the step (both bounded by the two surfaces' largest), and the margin
-                reach = (np.linalg.norm(V_p[nodes] - X_p[nodes], axis=1)
+                reach = (np.linalg.norm(sp_.V[idx] - sp_.X[idx], axis=1)
                          + float(np.linalg.norm(V_f - surfaces[f][3], axis=1).max()) + 2.0 * margin)
-                fc, bc, nc = facing_faces(V_p[nodes], fc, bc, nc, V_f, F_f, own[p][nodes], reach)
-            found[(p, f)] = (nodes, fc, bc, nc)
+                fc, bc, nc = facing_faces(sp_.V[idx], fc, bc, nc, V_f, F_f, sp_.normals()[idx], reach)
+            found[(p, f)] = (idx, fc, bc, nc)
             start += len(near)
     out = []
     for p, f, mu in order:
-        nodes, face, bary, normal = found[(p, f)]
-        if not len(nodes):
+        idx, face, bary, normal = found[(p, f)]
+        if not len(idx):
             continue
-        body_p, _, _, X_p, *_ = surfaces[p]
+        body_p = surfaces[p][0]
         body_f, _, F_f, X_f, *_ = surfaces[f]
         refs_f = PointRefs(F_f[face].astype(np.int64), bary)
-        slip = X_p[nodes] - refs_f.positions(X_f)
-        out.append(PairContacts(body_p, PointRefs.nodes(nodes), body_f, refs_f, normal, slip, np.full(len(nodes), mu)))
+        refs_p = points[p].refs(idx)
+        slip = points[p].X[idx] - refs_f.positions(X_f)
+        out.append(PairContacts(body_p, refs_p, body_f, refs_f, normal, slip, np.full(len(idx), mu)))
     return out
+
+
+@dataclass
+class SurfacePoints:
+    """The points of a surface that press on others (``body_contacts``): its N nodes, then the
+    centroids of its faces ``sampled`` (all or none, ``surface_points``), at the predicted
+    positions ``V`` and at the step start ``X``, with their outward normals (vertex normals, then
+    face normals; made on demand) and as ``PointRefs``."""
+
+    nodes: int
+    faces: np.ndarray
+    sampled: np.ndarray
+    V: np.ndarray
+    X: np.ndarray
+    V_nodes: np.ndarray
+    _normals: np.ndarray | None = None
+
+    def normals(self) -> np.ndarray:
+        if self._normals is None:
+            self._normals = np.concatenate([vertex_normals(self.V_nodes, self.faces),
+                                            face_normals(self.V_nodes, self.sampled)])
+        return self._normals
+
+    def refs(self, idx: np.ndarray) -> PointRefs:
+        """The points ``idx`` as weighted nodes: a node itself, a centroid its face's corners by thirds."""
+        node = idx < self.nodes
+        if node.all():
+            return PointRefs.nodes(idx)
+        ids = np.where(node[:, None], idx[:, None], self.sampled[np.where(node, 0, idx - self.nodes)]).astype(np.int64)
+        w = np.where(node[:, None], [1.0, 0.0, 0.0], 1.0 / 3.0)
+        return PointRefs(ids, w)
+
+
+#: surfaces of fewer faces press on others with their faces' centroids too (``body_contacts``)
+CENTROID_FACES = 48
+
+
+def surface_points(V: np.ndarray, F: np.ndarray, X: np.ndarray) -> SurfacePoints:
+    """``SurfacePoints`` of a surface of nodes V (predicted), X (step start) and faces F: its
+    nodes, and its faces' centroids if it has fewer than ``CENTROID_FACES`` faces (an 8-node box
+    has 12; a box subdivided once, 48, rests on another by its nodes alone)."""
+    F = np.asarray(F)
+    if len(F) >= CENTROID_FACES:
+        return SurfacePoints(nodes=len(V), faces=F, sampled=F[:0], V=V, X=X, V_nodes=V)
+    return SurfacePoints(nodes=len(V), faces=F, sampled=F, V=np.concatenate([V, V[F].mean(axis=1)]),
+                         X=np.concatenate([X, X[F].mean(axis=1)]), V_nodes=V)
