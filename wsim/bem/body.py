@@ -31,7 +31,7 @@ import warp as wp
 
 from wsim import mesh as wmesh
 from wsim import constraints as wc
-from wsim.contact import nearest_faces, points_inside, query_device
+from wsim.contact import CENTROID_FACES, nearest_faces, points_inside, query_device
 from wsim.bem import stepper
 from wsim.bem.device_step import LOG_ROWS, ResidentStep, set_frame
 from wsim.bem.constraints import (PointResponse, add_point_displacement, frame_terms, point_displacement,
@@ -709,6 +709,20 @@ class BemBody(VertexImpulses, Body):
                     points.add(wc.CONTACT, normal, height, target, mu)
                     nodes.append(sel)
         refs = wc.PointRefs.nodes(np.concatenate(nodes) if nodes else np.zeros(0, dtype=np.int64))
+        faces = self._surface.faces
+        if surfaces is not None and len(faces) < CENTROID_FACES:
+            # a coarse surface presses on mesh colliders with its faces' centroids too (as on other
+            # BEM bodies, ``wsim.contact.surface_points``): an 8-node box set corner over corner on
+            # a box collider slid down its edges to the ground, and 2 cm off centre tipped over
+            C, C_prev, free = V[faces].mean(axis=1), X_prev[faces].mean(axis=1), held[faces].any(axis=1)
+            for ci, col in enumerate(surfaces):
+                if surfaces.plane(ci) is None:
+                    sel, normal, height = self._mesh_points(ci, C, t, self.contact_distance, free)
+                    if len(sel):
+                        G, g = surfaces.velocity(ci, t - self.dt, max(1e-6, 1e-3 * self.dt))
+                        mu = col.friction if self.friction is None else max(col.friction, self.friction)
+                        points.add(wc.CONTACT, normal, height, C_prev[sel] + self.dt * (C_prev[sel] @ G.T + g), mu)
+                        refs = refs.concat(wc.PointRefs(faces[sel].astype(np.int64), np.full((len(sel), 3), 1.0 / 3.0)))
         if surfaces is not None:
             for ci, col in enumerate(surfaces):
                 if surfaces.plane(ci) is None:
