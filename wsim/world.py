@@ -686,9 +686,9 @@ def _couple_surfaces(pusher: Body, targets: Sequence[Body], index: dict[int, int
             kept = getattr(b, "vertices_kept_out", False)
             # an EoL pusher's rows share each correction with the pushed body's rigid give
             # (``EolBody.set_moving_surfaces``), a PBD pusher's particles with a BEM body's
-            # (``PbdBody.set_moving_surfaces``; a PBD body pushes an EoL body only when it is the
-            # lighter, ``_eol_pushes_pbd``, where the lag is stable: with the EoL body's give an
-            # 8.6 kg EoL cube on a coarse 6.5 kg PBD box walked 10.6 mm in 0.5 s instead of 6.0)
+            # (``PbdBody.set_moving_surfaces``; a PBD body pushes an EoL body only while it rests,
+            # lighter, on it, ``_eol_pushes_pbd``, and takes it as immovable: with the EoL body's
+            # give an 8.6 kg EoL cube on a coarse 6.5 kg PBD box walked 10.6 mm in 0.5 s instead of 6.0)
             rigid = None
             yields = getattr(pusher, "yielding_partners", False) and hasattr(b, "world_inertia")
             if yields and (hasattr(b, "constraint_begin") or not hasattr(pusher, "advance_together")):
