@@ -842,6 +842,38 @@ def test_eol_cube_rests_on_a_coarse_pbd_box(monkeypatch, rho, kept_out, pusher):
         assert deepest > 3e-3
 
 
+def test_eol_bodies_push_pbd_bodies_unless_a_light_pbd_body_rests_on_one():
+    """``wsim.world._eol_pushes_pbd`` (one answer for the World, asked before each interval): a
+    light PBD ball resting on a heavy EoL block makes the PBD bodies push, a heavy EoL ball
+    resting on a light PBD box the EoL bodies; with both in one World the EoL bodies push (the
+    heavy EoL ball bounced on the box at 363 mm/s when the ball on the block let the PBD bodies
+    push, an independent check); without gravity the lighter method pushes."""
+    from wsim.world import _eol_pushes_pbd
+
+    soft = wsim.ElasticMaterial(E=2e5, nu=0.3, rho=1000.0)
+
+    def scene(pair_a: bool, pair_b: bool, gravity: float = G) -> wsim.World:
+        w = wsim.World(fps=60, gravity=(0.0, -gravity, 0.0), device="cpu")
+        w.add_collider(wsim.GroundPlane(0.0))
+        if pair_a:  # a 0.8 kg PBD ball on a 13.5 kg EoL block
+            w.add(wsim.EolBody(trimesh.creation.box(extents=(0.3, 0.15, 0.3)).subdivide(), soft, resolution=5,
+                               name="block", position=(0.0, 0.0755, 0.0)))
+            w.add(wsim.PbdBody(trimesh.creation.icosphere(subdivisions=1, radius=0.06), soft, tets="auto", name="ball",
+                               position=(0.02, 0.2105, 0.0)))  # touching
+        if pair_b:  # a 7.3 kg EoL ball on a 1.2 kg PBD box
+            w.add(wsim.PbdBody(trimesh.creation.box(extents=(0.2, 0.1, 0.2)), wsim.ElasticMaterial(E=2e5, nu=0.3, rho=300.0),
+                               tets="auto", name="box", position=(1.0, 0.0505, 0.0)))
+            w.add(wsim.EolBody(trimesh.creation.icosphere(subdivisions=1, radius=0.1), wsim.ElasticMaterial(
+                E=2e5, nu=0.3, rho=2000.0), resolution=5, name="eball", position=(1.0, 0.2005, 0.0)))
+        w._bind()
+        return w
+
+    for a, b, gravity, pushes in ((True, False, G, False), (False, True, G, True), (True, True, G, True),
+                                  (True, False, 0.0, False)):
+        w = scene(a, b, gravity)
+        assert _eol_pushes_pbd(w._pbd, w._eol, w.gravity, 1.0 / 240.0) is pushes, (a, b, gravity)
+
+
 def test_light_eol_box_rests_on_a_heavy_pbd_slab():
     """A 1 kg EoL box (8 cells, damping 20) set 1 mm above a 32 kg PBD slab on the ground. The EoL
     body rests on the slab, so its QP pushes the slab with the slab's give (``wsim.world._eol_pushes_pbd``)

@@ -852,7 +852,11 @@ def _eol_pushes_pbd(pbd: Sequence[Body], eol: Sequence[Body], gravity: np.ndarra
 
     Under gravity EoL bodies push, unless a PBD body rests on an EoL body heavier than itself
     (within reach of it over the interval, its lowest point above the middle of the EoL body's
-    surface along the vertical):
+    surface along the vertical) and no EoL body rests so on a PBD body lighter than itself (one
+    answer serves every pair of the World, and of the two failures the heavy EoL body's is the
+    worse: a 0.9 kg PBD ball resting on an 11.6 kg EoL block let the World's PBD bodies push, and
+    a heavy EoL ball elsewhere bounced on a light PBD box at 363 mm/s, 8.6 alone; an
+    independent check):
     a light body resting on another must keep itself out at once. Measured (0.26 x 0.14 x 0.26 m
     box under a 0.15 m cube 2 cm off centre, E = 1 MPa, 2 s; an independent check):
 
@@ -884,18 +888,19 @@ def _eol_pushes_pbd(pbd: Sequence[Body], eol: Sequence[Body], gravity: np.ndarra
                 boxes[id(b)] = _reach_box(b, at(b), interval, g, getattr(b, "contact_margin", None) or 0.0)
             return boxes[id(b)]
 
+        def rests(a: Body, b: Body) -> bool:  # a's lowest point above b's middle height, within reach
+            h = at(b) @ up
+            return float((at(a) @ up).min()) > 0.5 * float(h.min() + h.max()) and _overlap(box(a), box(b))
+
         masses = {id(p): _mass(p) for p in pbd}
+        pbd_rests = False
         for e in eol:
             m_e = _mass(e)
-            lighter = [p for p in pbd if masses[id(p)] < m_e]
-            if not lighter:
-                continue
-            h = at(e) @ up
-            middle = 0.5 * float(h.min() + h.max())  # the EoL body's middle height (its surface's box)
-            for p in lighter:
-                if float((at(p) @ up).min()) > middle and _overlap(box(p), box(e)):
-                    return False
-        return True
+            for p in (p for p in pbd if masses[id(p)] < m_e):
+                if rests(e, p):
+                    return True  # a heavy EoL body on a light PBD body: the worse failure, first
+                pbd_rests = pbd_rests or rests(p, e)
+        return not pbd_rests
     return max(b.mass for b in pbd) >= min(float(b.node_masses().sum()) for b in eol)
 
 
