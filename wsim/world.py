@@ -852,13 +852,13 @@ def _eol_pushes_pbd(pbd: Sequence[Body], eol: Sequence[Body], gravity: np.ndarra
 
     Under gravity EoL bodies push, unless a PBD body rests on an EoL body heavier than itself
     (within reach of it over the interval, its lowest point above the middle of the EoL body's
-    surface along the vertical) and no EoL body rests so on a PBD body lighter than itself (one
-    answer serves every pair of the World, and of the two failures the heavy EoL body's is the
+    surface along the vertical): a light body resting on another must keep itself out at once.
+    One answer serves every pair of the World, so where an EoL body also rests so on a PBD body
+    lighter than itself the EoL bodies push (of the two failures the heavy EoL body's is the
     worse: a 0.9 kg PBD ball resting on an 11.6 kg EoL block let the World's PBD bodies push, and
-    a heavy EoL ball elsewhere bounced on a light PBD box at 363 mm/s, 8.6 alone; an
-    independent check):
-    a light body resting on another must keep itself out at once. Measured (0.26 x 0.14 x 0.26 m
-    box under a 0.15 m cube 2 cm off centre, E = 1 MPa, 2 s; an independent check):
+    a heavy EoL ball elsewhere bounced on a light PBD box at 363 mm/s, 8.6 alone; an independent
+    check). Measured (0.26 x 0.14 x 0.26 m box under a 0.15 m cube 2 cm off centre, E = 1 MPa,
+    2 s; an independent check):
 
     - a 23 kg EoL cube on a 7.6 kg PBD box: pushed by the box, it gained 4 J a second and walked
       off, and an 11 kg one fell off within 2 s; pushing the box, 0.8 / 1.5 mm/s (box / cube) and
@@ -868,8 +868,8 @@ def _eol_pushes_pbd(pbd: Sequence[Body], eol: Sequence[Body], gravity: np.ndarra
     - a 2.5 kg PBD cube on an 8 kg EoL box: pushing it, 0.2 / 2.2 mm/s; pushed by the box, 1.2 /
       4.7 mm/s; a 1 kg PBD box on a stiff 32 kg EoL slab pushed by the slab bounced at 0.2 m/s.
 
-    Without gravity (nothing rests), or with no such pair: unless every PBD body is lighter than
-    every EoL body (the error of the late momentum is smaller on the heavier body)."""
+    Without gravity (nothing rests): unless every PBD body is lighter than every EoL body (the
+    error of the late momentum is smaller on the heavier body)."""
     if not pbd or not eol:
         return True
     g = 0.0 if gravity is None else float(np.linalg.norm(gravity))
