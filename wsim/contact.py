@@ -161,12 +161,12 @@ def body_contacts(surfaces: Sequence[tuple[Any, np.ndarray, np.ndarray, np.ndarr
     inside test ``wsim.mesh.inside_test``)), except the pairs in ``skip`` (frozensets of the two
     bodies' ids).
 
-    The points of a surface that press on another are its nodes and its faces' centroids
-    (``surface_points``): with nodes alone, two coarse surfaces touch only where a node of one
-    lies over a face of the other, and two 8-node cubes (``trimesh.creation.box``) stacked corner
-    over corner slid down each other's edges (on the edge planes, no face held them) until the top
-    one lay on the ground inside the other, and stacked 2 cm off had two supports on a diagonal
-    and tipped into it. Each surface is queried once (one mesh built, one launch) with the
+    The points of a surface that press on another are its nodes and, on a coarse surface, its
+    faces' centroids (``surface_points``, ``centroid_faces``): with nodes alone, two coarse
+    surfaces touch only where a node of one lies over a face of the other, and two 8-node cubes
+    (``trimesh.creation.box``) stacked corner over corner slid down each other's edges (on the
+    edge planes, no face held them) until the top one lay on the ground inside the other, and
+    stacked 2 cm off had two supports on a diagonal and tipped into it. Each surface is queried once (one mesh built, one launch) with the
     points of every partner near it: a point's answer does not depend on the others queried
     with it, so the contacts are those of one query per pair and direction, in the same order
     (per pair: the nodes, then the centroids)."""
@@ -224,22 +224,21 @@ def body_contacts(surfaces: Sequence[tuple[Any, np.ndarray, np.ndarray, np.ndarr
 @dataclass
 class SurfacePoints:
     """The points of a surface that press on others (``body_contacts``): its N nodes, then the
-    centroids of its faces ``sampled`` (all or none, ``surface_points``), at the predicted
-    positions ``V`` and at the step start ``X``, with their outward normals (vertex normals, then
-    face normals; made on demand) and as ``PointRefs``."""
+    centroids of its faces ``sampled`` (``centroid_faces``), at the predicted positions ``V`` and
+    at the step start ``X``, with their outward normals (vertex normals, then face normals; made
+    on demand) and as ``PointRefs``."""
 
     nodes: int
     faces: np.ndarray
     sampled: np.ndarray
     V: np.ndarray
     X: np.ndarray
-    V_nodes: np.ndarray
     _normals: np.ndarray | None = None
 
     def normals(self) -> np.ndarray:
         if self._normals is None:
-            self._normals = np.concatenate([vertex_normals(self.V_nodes, self.faces),
-                                            face_normals(self.V_nodes, self.sampled)])
+            V = self.V[: self.nodes]
+            self._normals = np.concatenate([vertex_normals(V, self.faces), face_normals(V, self.sampled)])
         return self._normals
 
     def refs(self, idx: np.ndarray) -> PointRefs:
@@ -252,16 +251,24 @@ class SurfacePoints:
         return PointRefs(ids, w)
 
 
-#: surfaces of fewer faces press on others with their faces' centroids too (``body_contacts``)
+#: surfaces of fewer faces press on others with their faces' centroids too (``centroid_faces``)
 CENTROID_FACES = 48
 
 
-def surface_points(V: np.ndarray, F: np.ndarray, X: np.ndarray) -> SurfacePoints:
-    """``SurfacePoints`` of a surface of nodes V (predicted), X (step start) and faces F: its
-    nodes, and its faces' centroids if it has fewer than ``CENTROID_FACES`` faces (an 8-node box
-    has 12; a box subdivided once, 48, rests on another by its nodes alone)."""
+def centroid_faces(F: np.ndarray) -> np.ndarray:
+    """The faces of a surface whose centroids press on other bodies and on mesh colliders besides
+    its nodes (``body_contacts``, ``BemBody``'s collider contact): all of them if it has fewer than
+    ``CENTROID_FACES`` (an 8-node box has 12; a box subdivided once, 48, rests on another by its
+    nodes alone), else none."""
     F = np.asarray(F)
-    if len(F) >= CENTROID_FACES:
-        return SurfacePoints(nodes=len(V), faces=F, sampled=F[:0], V=V, X=X, V_nodes=V)
-    return SurfacePoints(nodes=len(V), faces=F, sampled=F, V=np.concatenate([V, V[F].mean(axis=1)]),
-                         X=np.concatenate([X, X[F].mean(axis=1)]), V_nodes=V)
+    return F if len(F) < CENTROID_FACES else F[:0]
+
+
+def surface_points(V: np.ndarray, F: np.ndarray, X: np.ndarray) -> SurfacePoints:
+    """``SurfacePoints`` of a surface of nodes V (predicted), X (step start) and faces F."""
+    F = np.asarray(F)
+    S = centroid_faces(F)
+    if not len(S):
+        return SurfacePoints(nodes=len(V), faces=F, sampled=S, V=V, X=X)
+    return SurfacePoints(nodes=len(V), faces=F, sampled=S, V=np.concatenate([V, V[S].mean(axis=1)]),
+                         X=np.concatenate([X, X[S].mean(axis=1)]))

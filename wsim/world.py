@@ -266,7 +266,7 @@ class World:
         changes its answer, ``_update_roles``): the pushed bodies (BEM; EoL or PBD, ``eol_pushes``)
         and each pusher's targets, and the pairs whose push the implicit coupling finds."""
         eol = {id(b) for b in self._eol}
-        pbd = {id(b) for b in self.bodies if hasattr(b, "advance_together")}
+        pbd = {id(b) for b in self._pbd}
         self._eol_pushes = eol_pushes
         self._eol_first = not eol_pushes  # the pushed of the two methods steps first
         self._pushed = [b for b in self.bodies if hasattr(b, "add_vertex_impulses")

@@ -31,7 +31,7 @@ import warp as wp
 
 from wsim import mesh as wmesh
 from wsim import constraints as wc
-from wsim.contact import CENTROID_FACES, nearest_faces, points_inside, query_device
+from wsim.contact import centroid_faces, nearest_faces, points_inside, query_device
 from wsim.bem import stepper
 from wsim.bem.device_step import LOG_ROWS, ResidentStep, set_frame
 from wsim.bem.constraints import (PointResponse, add_point_displacement, frame_terms, point_displacement,
@@ -709,15 +709,15 @@ class BemBody(VertexImpulses, Body):
                     points.add(wc.CONTACT, normal, height, target, mu)
                     nodes.append(sel)
         refs = wc.PointRefs.nodes(np.concatenate(nodes) if nodes else np.zeros(0, dtype=np.int64))
-        faces = self._surface.faces
-        if surfaces is not None and len(faces) < CENTROID_FACES:
+        faces = centroid_faces(self._surface.faces)
+        if surfaces is not None and len(faces):
             # a coarse surface presses on mesh colliders with its faces' centroids too (as on other
-            # BEM bodies, ``wsim.contact.surface_points``): an 8-node box set corner over corner on
+            # BEM bodies, ``wsim.contact.centroid_faces``): an 8-node box set corner over corner on
             # a box collider slid down its edges to the ground, and 2 cm off centre tipped over
-            C, C_prev, free = V[faces].mean(axis=1), X_prev[faces].mean(axis=1), held[faces].any(axis=1)
+            C, C_prev, held_c = V[faces].mean(axis=1), X_prev[faces].mean(axis=1), held[faces].any(axis=1)
             for ci, col in enumerate(surfaces):
                 if surfaces.plane(ci) is None:
-                    sel, normal, height = self._mesh_points(ci, C, t, self.contact_distance, free)
+                    sel, normal, height = self._mesh_points(ci, C, t, self.contact_distance, held_c)
                     if len(sel):
                         G, g = surfaces.velocity(ci, t - self.dt, max(1e-6, 1e-3 * self.dt))
                         mu = col.friction if self.friction is None else max(col.friction, self.friction)
