@@ -75,9 +75,6 @@ LAGRANGIAN = ("rigid", "affine", "eulerian")
 # at most cfl (< 1) cells upstream and the surface lies within a cell of the material points, so
 # two would do; the third keeps a node that loses its material consistent for one more step
 EXTEND_LAYERS = 3
-# Kelvin-Voigt viscosity, in units of rho h c1, from which a body gets the longer elastic cap
-# (0.5 h / c1 instead of 0.25; see ``EolBody``'s elastic_safety)
-DAMPED_CAP_VISCOSITY = 0.02
 READ_LOAD = 8 + ks.FIELDS  # where the loads' delivered force sits in a step's read-back (``_readout``)
 STAGES = ("forces", "collision", "assembly", "qp", "ls", "advect", "track", "plasticity")
 
@@ -181,14 +178,14 @@ class EolBody(VertexImpulses, Body):
             ``grid_grown``); node values are copied exactly, so growing changes nothing else.
         dt_max: cap on the step [s] besides the frame and the elastic limit (None: none).
         elastic_safety: the elastic cap is this fraction of h / c1 (P-wave cell crossing time).
-            None (default): 0.5 for a body with ``damping`` >= 0.02 rho h c1, else 0.25. At 0.5
-            a free, undamped box (0.3 x 0.2 x 0.15 m, E = 1e5, 8 cells) given a small random
-            velocity field gained 35x its energy in 4 s, spinning or not (about 0.7 % a step,
-            growing out of any noise; an independent check found it on a spinning box); 0.35 and
-            0.3 only delay it, 0.25 keeps it bounded for 10 s. A larger mass_floor does not cure
-            it: it is the scheme's step, not light nodes. Kelvin-Voigt damping does: at 0.5 the
-            box was bounded with 2 Pa s (0.005 rho h c1) and grew with 1 Pa s, hence the
-            4x margin of the automatic choice, which keeps damped scenes at the faster cap.
+            0.5 (default). Each advance (a frame, or a coupling interval) is split into equal
+            steps no longer than the caps (``advance_group``). Taken to the cap with the
+            remainder last, the steps repeated a pattern every advance, and an explicit step
+            under a periodically varying dt pumps a mode that it holds at a fixed one: a free,
+            undamped box (0.3 x 0.2 x 0.15 m, E = 1e5, 8 cells) given a small random velocity
+            field gained 35x its energy in 4 s at 0.5, and a PBD ball on an EoL block drove the
+            block's sliver nodes to 4 m/s. With equal steps the box decays at 0.5 and at 0.7;
+            at 1.0 it grows (``tools/results/study_eol_even_steps.jsonl``).
         quadrature: material points per cell axis (Gauss-Legendre).
         collision_block: edge of a collision cell, in cells of the body's grid (an integer >= 1): one
             contact row per collider and collision cell. Larger blocks: fewer rows and a cheaper QP
@@ -270,7 +267,7 @@ class EolBody(VertexImpulses, Body):
         angular_velocity: Sequence[float] = (0.0, 0.0, 0.0),
         padding: int = 2,
         dt_max: float | None = None,
-        elastic_safety: float | None = None,
+        elastic_safety: float = 0.5,
         quadrature: int = 2,
         collision_block: int | None = None,
         contact_spacing: float = 1.0,
@@ -328,10 +325,9 @@ class EolBody(VertexImpulses, Body):
             dt_max = finite_number(dt_max, f"{p}: dt_max [s]")
             if dt_max <= 0.0:
                 raise InvalidParameter(f"{p}: dt_max = {dt_max} s must be > 0")
-        if elastic_safety is not None:  # None: chosen from the damping once the grid is known
-            elastic_safety = finite_number(elastic_safety, f"{p}: elastic_safety")
-            if elastic_safety <= 0.0:
-                raise InvalidParameter(f"{p}: elastic_safety = {elastic_safety} must be > 0")
+        elastic_safety = finite_number(elastic_safety, f"{p}: elastic_safety")
+        if elastic_safety <= 0.0:
+            raise InvalidParameter(f"{p}: elastic_safety = {elastic_safety} must be > 0")
         self._positive = {k: finite_number(v, f"{p}: {k}") for k, v in
                           (("contact_relaxation", contact_relaxation), ("track_tol", track_tol),
                            ("contact_spacing", contact_spacing))}
@@ -385,9 +381,6 @@ class EolBody(VertexImpulses, Body):
         self._volumes = samples.weights
         self._z_vertices = np.asarray(tracked, dtype=np.float64) - self.com  # the given vertices first
         self.mass = material.rho * float(samples.weights.sum())
-        if elastic_safety is None:  # see the docstring: undamped bodies need the shorter cap
-            damped = self.damping >= DAMPED_CAP_VISCOSITY * material.rho * self.grid.h * material.c1
-            elastic_safety = 0.5 if damped else 0.25
         self.elastic_safety = float(elastic_safety)
         self.dt_elastic = elastic_dt_limit(self.grid.h, material, self.elastic_safety)
         if self.damping > 0.0:  # explicit viscosity: diffusion number eta dt / (rho h^2) <= 1/12
@@ -1036,8 +1029,8 @@ class EolBody(VertexImpulses, Body):
         return {ms.key: normal[ms.key] + ms.friction_impulse for ms in self._moving}
 
     def advance(self, t0: float, t1: float) -> None:
-        """Adaptive steps (Eq. 33) from the body's time to t1, each capped by the frame end, the
-        elastic limit and ``dt_max``."""
+        """Adaptive steps (Eq. 33) from the body's time to t1: equal steps within the elastic limit
+        and ``dt_max`` (``advance_group``), shorter where Eq. (33) asks."""
         EolBody.advance_group([self], [0], t0, t1)
 
     @staticmethod
@@ -1046,13 +1039,21 @@ class EolBody(VertexImpulses, Body):
         step (the smallest any of them asks for, Eq. 33) and one contact QP across them (Eq. 29:
         each body's rows against colliders and other methods' surfaces, and the rows between the
         bodies, ``wsim.eol.pairs``). ``keys``: the bodies' stable keys in the World (the rows
-        between bodies keep their warm start under them). A body failing stops the group."""
+        between bodies keep their warm start under them). A body failing stops the group.
+
+        What is left of the advance is split into the fewest equal steps within the elastic limit
+        and ``dt_max``, not run to the limit with the remainder last: that repeated a pattern of
+        uneven steps every advance, which pumps a mode the explicit step holds at a fixed dt
+        (parametric resonance; ``EolBody``'s elastic_safety). Where Eq. (33) asks for less, the
+        step is shorter and the rest is split again."""
         for b in bodies:
             b._require_bound()
             b._begin_advance(t1)
         eps = 1e-9 * max(t1 - t0, 1e-12)
         while all(b._failure is None for b in bodies) and bodies[0].time < t1 - eps:
-            cap = min(min(t1 - b.time, b.dt_elastic, b.dt_max or math.inf) for b in bodies)
+            left = t1 - bodies[0].time
+            limit = min(min(b.dt_elastic, b.dt_max or math.inf) for b in bodies)
+            cap = left / max(math.ceil(left / limit - 1e-9), 1)
             _step_together(bodies, keys, cap)
         if all(b._failure is None for b in bodies):
             for b in bodies:
