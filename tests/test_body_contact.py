@@ -847,18 +847,23 @@ def test_eol_bodies_push_pbd_bodies_unless_a_light_pbd_body_rests_on_one():
     light PBD ball resting on a heavy EoL block makes the PBD bodies push, a heavy EoL ball
     resting on a light PBD box the EoL bodies; with both in one World the EoL bodies push (the
     heavy EoL ball bounced on the box at 363 mm/s when the ball on the block let the PBD bodies
-    push, an independent check); without gravity the lighter method pushes."""
-    from wsim.world import _eol_pushes_pbd
+    push, an independent check); without gravity the lighter method pushes. A PBD ball less than
+    ``PBD_PUSHER_MASS_RATIO`` (5) times lighter than the block it rests on leaves the push to the
+    block: 0.2 m PBD cubes of 8, 4 and 2.6 kg on an 8 kg EoL box moved at 57-91, 27-74 and
+    20-37 mm/s pushing it (energy rising), 0.2-1.0 mm/s pushed (``_eol_pushes_pbd``'s table); the
+    strict "lighter" rule before switched the pusher between intervals for the 8 kg pair."""
+    from wsim.world import PBD_PUSHER_MASS_RATIO, _eol_pushes_pbd
 
     soft = wsim.ElasticMaterial(E=2e5, nu=0.3, rho=1000.0)
 
-    def scene(pair_a: bool, pair_b: bool, gravity: float = G) -> wsim.World:
+    def scene(pair_a: bool, pair_b: bool, gravity: float = G, ball_rho: float = 1000.0) -> wsim.World:
         w = wsim.World(fps=60, gravity=(0.0, -gravity, 0.0), device="cpu")
         w.add_collider(wsim.GroundPlane(0.0))
-        if pair_a:  # a 0.8 kg PBD ball on a 13.5 kg EoL block
+        if pair_a:  # a 0.8 kg PBD ball (at ball_rho 1000) on a 13.5 kg EoL block
             w.add(wsim.EolBody(trimesh.creation.box(extents=(0.3, 0.15, 0.3)).subdivide(), soft, resolution=5,
                                name="block", position=(0.0, 0.0755, 0.0)))
-            w.add(wsim.PbdBody(trimesh.creation.icosphere(subdivisions=1, radius=0.06), soft, tets="auto", name="ball",
+            w.add(wsim.PbdBody(trimesh.creation.icosphere(subdivisions=1, radius=0.06),
+                               wsim.ElasticMaterial(E=2e5, nu=0.3, rho=ball_rho), tets="auto", name="ball",
                                position=(0.02, 0.2105, 0.0)))  # touching
         if pair_b:  # a 7.3 kg EoL ball on a 1.2 kg PBD box
             w.add(wsim.PbdBody(trimesh.creation.box(extents=(0.2, 0.1, 0.2)), wsim.ElasticMaterial(E=2e5, nu=0.3, rho=300.0),
@@ -872,6 +877,11 @@ def test_eol_bodies_push_pbd_bodies_unless_a_light_pbd_body_rests_on_one():
                                   (True, False, 0.0, False)):
         w = scene(a, b, gravity)
         assert _eol_pushes_pbd(w._pbd, w._eol, w.gravity, 1.0 / 240.0) is pushes, (a, b, gravity)
+    for rho, pushes in ((5000.0, True), (2000.0, False)):  # a ball 3.3x and 8x lighter than the block
+        w = scene(True, False, ball_rho=rho)
+        ratio = float(w._eol[0].node_masses().sum()) / float(w._pbd[0].masses.sum())
+        assert (ratio < PBD_PUSHER_MASS_RATIO) is pushes, ratio
+        assert _eol_pushes_pbd(w._pbd, w._eol, w.gravity, 1.0 / 240.0) is pushes, rho
 
 
 def test_light_eol_box_rests_on_a_heavy_pbd_slab():
@@ -1188,7 +1198,7 @@ def test_eol_box_rests_on_an_eol_box():
     replaced); the upper box's contact impulse is its weight, m g t to 0.1 % (measured 2e-5), and
     the lower box takes the opposite."""
     w = wsim.World(fps=30, device="cpu")
-    w.add_collider(wsim.GroundPlane(name="ground"))
+    w.add_collider(wsim.GroundPlane(name="ground", friction=0.0))  # as measured
     mat = wsim.ElasticMaterial(E=2e5, nu=0.3, rho=500.0)
     box = trimesh.creation.box(extents=(0.3, 0.2, 0.3)).subdivide().subdivide()
     low = w.add(wsim.EolBody(box, mat, resolution=5, name="low", position=(0, 0.101, 0), damping=100.0))
@@ -1284,9 +1294,11 @@ def test_eol_pair_friction_is_near_coulombs_minimum(monkeypatch):
 
 
 def _slab_world(mu: float, device: str):
-    """A World (60 fps) with a frictionless ground and a heavy EoL slab (0.8 x 0.1 x 0.3 m, 48 kg,
-    top at y = 0.1005 m) of friction mu on it (16 cells: two across its thickness, where its
-    material points weigh it right; at 12 it would weigh 28 kg)."""
+    """A World (60 fps) with a ground and a heavy EoL slab (0.8 x 0.1 x 0.3 m, 48 kg, top at y =
+    0.1005 m) of friction mu on it (16 cells: two across its thickness, where its material points
+    weigh it right; at 12 it would weigh 28 kg). Since 2026-11-28 the slab's friction holds it on
+    the ground (a collider's contact takes the larger of the two); before, the ground was
+    frictionless for it, and the slab slid by m / M of the box's slide (2 %)."""
     w = wsim.World(fps=60, device=device)
     w.add_collider(wsim.GroundPlane(name="ground"))
     slab = trimesh.creation.box(extents=(0.8, 0.1, 0.3)).subdivide().subdivide()
@@ -1298,7 +1310,7 @@ def _slab_world(mu: float, device: str):
 def test_eol_box_slides_to_a_stop_on_an_eol_slab(device):
     """An EoL box launched at 1 m/s across the flat top of a heavy EoL slab (friction 0.4 on both)
     stops within 15 % of the Coulomb distance v^2 / (2 mu g) (measured 0.1254 m against 0.1274 m),
-    relative to the slab (which the friction pushes along the frictionless ground); the tangential
+    relative to the slab (``_slab_world``); the tangential
     impulse it took is mu times the normal one while it slid, to 1 % (measured 0.17 % above:
     Coulomb's bound holds per contact row, mu lambda |D|, and a few rows at the box's bulged
     bottom edges push sideways, 2-5 % of the load, whose bounds add to the total but whose normal
@@ -1404,13 +1416,15 @@ def test_eol_box_of_the_cubes_mass_rests_on_it(box_ops):
 
 def _bem_box_on_eol_slab(ops, mat, velocity: float, device: str):
     """The 0.2 m BEM cube (material ``mat``, friction 0.5) set on the flat top of a heavy EoL slab
-    (48 kg, friction 0.5: ``_slab_world``'s, at 100 fps so that the frame holds whole BEM steps) on
-    a frictionless ground, launched along x at ``velocity``; the World, slab and box."""
+    (48 kg, ``_slab_world``'s, at 100 fps so that the frame holds whole BEM steps) on a frictionless
+    ground, launched along x at ``velocity``; the World, slab and box. The slab's friction is left
+    unset: the pair takes the cube's 0.5, and the ground's 0 holds for the slab (a collider's
+    contact takes the larger of the collider's and the body's)."""
     w = wsim.World(fps=1.0 / (5 * DT), device=device)
-    w.add_collider(wsim.GroundPlane(name="ground"))
+    w.add_collider(wsim.GroundPlane(name="ground", friction=0.0))
     slab = trimesh.creation.box(extents=(0.8, 0.1, 0.3)).subdivide().subdivide()
     base = w.add(wsim.EolBody(slab, wsim.ElasticMaterial(E=5e5, nu=0.3, rho=2000.0), resolution=16, name="slab",
-                              position=(0.2, 0.0505, 0), damping=100.0, friction=0.5))
+                              position=(0.2, 0.0505, 0), damping=100.0))
     box = w.add(wsim.BemBody(BOX, mat, DT, operators=ops, name="box", position=(0.0, 0.2015, 0.0),
                              velocity=(velocity, 0.0, 0.0), friction=0.5))
     return w, base, box

@@ -155,9 +155,60 @@ def test_drop_on_ground_comes_to_rest_momentum_by_gravity_and_contact_t6(lagrang
     # cell, so a single vertex can dip between samples while the cell's overlap is pushed out)
     assert abs(lowest.mean()) < 0.02 * 0.5
     assert min(entry[1][0] for entry in log) > -0.1 * 0.5
-    assert np.abs(impulse[[0, 2]]).max() < 0.01 * impulse[1]  # frictionless, along the normal
+    assert np.abs(impulse[[0, 2]]).max() < 0.01 * impulse[1]  # dropped straight: along the normal (friction too)
     # a nu = 0.3 ball sagging ~10 % under its own weight (rho g r / E = 0.05) loses ~(1 - 2 nu) 10 %
     assert b.volume() == pytest.approx(sphere().volume, rel=0.07)
+
+
+def _slab_on(collider, velocity=(0.0, 0.0, 0.0), device="cpu"):
+    """A World (60 fps) with ``collider`` and a box (0.4 x 0.1 x 0.3 m, E = 5e5, 6 cells, damping
+    50) resting on y = 0 at ``velocity``; the World, the box and its lumped mass."""
+    w = wsim.World(fps=60, device=device)
+    w.add_collider(collider)
+    b = w.add(EolBody(trimesh.creation.box((0.4, 0.1, 0.3)).subdivide().subdivide(),
+                      wsim.ElasticMaterial(E=5e5, nu=0.3, rho=1000.0), resolution=6, position=(0.0, 0.0505, 0.0),
+                      velocity=velocity, damping=50.0))
+    return w, b, float(b.node_masses().sum())
+
+
+@pytest.mark.parametrize("mu", [0.3, 0.0])
+def test_box_slides_to_the_coulomb_distance_on_the_ground(device, mu):
+    """Friction against colliders (grid-node Coulomb friction at the nodes the collider's rows
+    push, ``kernels.eol_contact.node_friction``, as against other methods' surfaces; before
+    2026-11-28 EoL bodies ignored a collider's friction, as the paper's contact is frictionless):
+    a box launched at 1 m/s along a ground of friction 0.3 stops at v^2 / (2 mu g) (measured
+    0.1694 m against 0.1699; 0.1700 at 8 cells), and the ground's friction impulse, in
+    ``contact_impulse``, is -m v0. On a frictionless ground it keeps its speed."""
+    w, b, m = _slab_on(wsim.GroundPlane(friction=mu), velocity=(1.0, 0.0, 0.0), device=device)
+    x0 = b.center_of_mass()[0]
+    for _ in range(30 if mu else 12):
+        w.step()
+    v = b.linear_momentum() / m
+    if mu:
+        assert b.center_of_mass()[0] - x0 == pytest.approx(1.0 / (2.0 * mu * 9.81), rel=0.03)
+        assert np.abs(v).max() < 2e-3
+        assert b.contact_impulse[0] == pytest.approx(-m, rel=0.01)
+    else:
+        assert v[0] == pytest.approx(1.0, abs=2e-3)
+        assert abs(b.contact_impulse[0]) < 1e-9
+
+
+def test_box_is_carried_by_a_moving_collider():
+    """A kinematic platform (friction 0.3) starting at 0.5 m/s under a box at rest: friction
+    accelerates the box at mu g, relative to the platform's motion (measured 0.2945 m/s at 0.1 s
+    against mu g t = 0.294), until it moves with the platform (0.5000 m/s from 0.2 s)."""
+    def platform(t):
+        M = np.eye(4)
+        M[0, 3], M[1, 3] = 0.5 * t, -0.05
+        return M
+
+    w, b, m = _slab_on(wsim.MeshCollider(trimesh.creation.box((3.0, 0.1, 1.0)), transform=platform, friction=0.3))
+    speeds = []
+    for _ in range(18):
+        w.step()
+        speeds.append(b.linear_momentum()[0] / m)
+    assert speeds[5] == pytest.approx(0.3 * 9.81 * 0.1, rel=0.05)
+    assert speeds[-1] == pytest.approx(0.5, abs=2e-3)
 
 
 def test_dt_dips_in_contact_and_grows_back_to_the_frame_fig8():

@@ -19,7 +19,10 @@ it). ``fell``: the top's centre ended below the bottom's top face. ``--coupling`
     python tools/study_stacks.py [--pairs bem/pbd,pbd/bem,...] [--ratios 1,5] [--device cpu]
         [--coupling auto] [--out tools/results/study_stacks_cpu.jsonl]
 
-``bottom/top`` names a pair (``--pairs``; default: the six of different methods).
+``bottom/top`` names a pair (``--pairs``; default: the six of different methods). ``--pusher eol``
+or ``pbd`` makes that method push between PBD and EoL bodies whatever ``wsim.world._eol_pushes_pbd``
+would choose (the study of ``wsim.world.PBD_PUSHER_MASS_RATIO``:
+``tools/results/study_stacks_pusher_cpu.jsonl``, ``--pairs eol/pbd --ratios 2,1,0.5,0.33,0.2,0.125,0.0625``).
 """
 
 from __future__ import annotations
@@ -113,12 +116,19 @@ def main() -> None:
     ap.add_argument("--offset", type=float, default=0.02)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--coupling", default="auto", help="World(coupling=...): auto, explicit or implicit")
+    ap.add_argument("--pusher", choices=("rule", "eol", "pbd"), default="rule",
+                    help="between PBD and EoL bodies: the World's rule (wsim.world._eol_pushes_pbd), or always this method")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
+    if args.pusher != "rule":  # a study of the rule itself: this process's World only
+        import wsim.world
+
+        wsim.world._eol_pushes_pbd = lambda *a, **k: args.pusher == "eol"
     for ratio in (float(x) for x in args.ratios.split(",")):
         for pair in args.pairs.split(","):
             bottom, top = pair.split("/")
-            line = json.dumps(stack(bottom, top, ratio, args.seconds, args.offset, args.device, args.coupling))
+            result = stack(bottom, top, ratio, args.seconds, args.offset, args.device, args.coupling)
+            line = json.dumps(result | ({"pusher": args.pusher} if args.pusher != "rule" else {}))
             print(line, flush=True)
             if args.out:
                 with open(args.out, "a") as f:

@@ -33,6 +33,12 @@ def pair_friction(a: float | None, b: float | None) -> float:
     return max(DEFAULT_FRICTION if a is None else a, DEFAULT_FRICTION if b is None else b)
 
 
+def collider_friction(collider: float, body: float | None) -> float:
+    """Coulomb friction between a collider and a body of friction ``body`` (BEM and EoL bodies;
+    None: the collider's alone): the larger."""
+    return collider if body is None else max(collider, body)
+
+
 @dataclass(frozen=True)
 class PairContacts:
     """Two-sided contacts between bodies a and b (k of them): ``refs_a`` and ``refs_b`` are the

@@ -31,7 +31,7 @@ import warp as wp
 
 from wsim import mesh as wmesh
 from wsim import constraints as wc
-from wsim.contact import centroid_faces, nearest_faces, points_inside, query_device
+from wsim.contact import centroid_faces, collider_friction, nearest_faces, points_inside, query_device
 from wsim.bem import stepper
 from wsim.bem.device_step import LOG_ROWS, ResidentStep, set_frame
 from wsim.bem.constraints import (PointResponse, add_point_displacement, frame_terms, point_displacement,
@@ -704,7 +704,7 @@ class BemBody(VertexImpulses, Body):
                     sel, normal, height = self._mesh_points(ci, V, t, margin, held)
                     G, g = surfaces.velocity(ci, t - self.dt, max(1e-6, 1e-3 * self.dt))
                     target = X_prev[sel] + self.dt * (X_prev[sel] @ G.T + g)  # carried by the collider
-                mu = col.friction if self.friction is None else max(col.friction, self.friction)
+                mu = collider_friction(col.friction, self.friction)
                 if len(sel):
                     points.add(wc.CONTACT, normal, height, target, mu)
                     nodes.append(sel)
@@ -720,7 +720,7 @@ class BemBody(VertexImpulses, Body):
                     sel, normal, height = self._mesh_points(ci, C, t, self.contact_distance, held_c)
                     if len(sel):
                         G, g = surfaces.velocity(ci, t - self.dt, max(1e-6, 1e-3 * self.dt))
-                        mu = col.friction if self.friction is None else max(col.friction, self.friction)
+                        mu = collider_friction(col.friction, self.friction)
                         points.add(wc.CONTACT, normal, height, C_prev[sel] + self.dt * (C_prev[sel] @ G.T + g), mu)
                         refs = refs.concat(wc.PointRefs(faces[sel].astype(np.int64), np.full((len(sel), 3), 1.0 / 3.0)))
         if surfaces is not None:
@@ -728,7 +728,7 @@ class BemBody(VertexImpulses, Body):
                 if surfaces.plane(ci) is None:
                     corners = self._corner_points(ci, V, X_prev, t)
                     if corners is not None:
-                        mu = col.friction if self.friction is None else max(col.friction, self.friction)
+                        mu = collider_friction(col.friction, self.friction)
                         face_refs, normal, height, target = corners
                         points.add(wc.CONTACT, normal, height, target, mu)
                         refs = refs.concat(face_refs)

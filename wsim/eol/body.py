@@ -24,8 +24,9 @@ One step (Table II's stages):
 
 Precision: float64 everywhere on the grid (strain is a difference of nearby absolute coordinates;
 the paper's J-bar and LS sums are ill-conditioned in float32). Contact with colliders is the
-paper's frictionless volume constraint. Other methods' bodies' surfaces (``set_moving_surfaces``,
-issue 18) get the same rows, plus Coulomb friction at the grid nodes they push. EoL bodies that
+paper's volume constraint, plus Coulomb friction at the grid nodes its rows push (the paper's is
+frictionless). Other methods' bodies' surfaces (``set_moving_surfaces``, issue 18) get the same
+rows and friction. EoL bodies that
 may touch step together with one dt and one QP across them (``advance_group``, the paper's Eq. 29
 across objects; the rows between them in ``wsim.eol.pairs``).
 """
@@ -45,6 +46,7 @@ import warp as wp
 from wsim import mesh as wmesh
 from wsim.body import Body, VertexImpulses
 from wsim.colliders import Surfaces
+from wsim.contact import collider_friction
 from wsim.eol import pairs
 from wsim.eol.advection import advect_arrays, check_scheme, extend_reference_map
 from wsim.eol.contact import (ContactRows, ContactSolution, ContactSystem, block_nodes, rows_from_blocks, solve_contact,
@@ -234,9 +236,13 @@ class EolBody(VertexImpulses, Body):
             not need it (a bunny, a fish at 24-60 fps, boxes complete without). It doubles the
             amplitude decay of a breathing sphere (0.49/s against 0.26/s at 12 cells; README
             "EoL solids").
-        friction: Coulomb coefficient against other bodies (the larger of the two bodies' values;
-            None: ``wsim.contact.DEFAULT_FRICTION`` unless the other gives one). Contact with the
-            World's colliders is frictionless, as in the paper.
+        friction: Coulomb coefficient against other bodies (the larger of the two bodies' values,
+            ``wsim.contact.pair_friction``; None counts as ``wsim.contact.DEFAULT_FRICTION``) and
+            colliders (the larger of it and the collider's, ``wsim.contact.collider_friction``;
+            None: the collider's). Friction acts at the grid
+            nodes the contact rows push (``kernels.eol_contact.node_friction``), relative to the
+            collider's or surface's motion; the paper's contact is frictionless (a frictionless
+            collider, ``friction=0``, gives it).
         merge_vertices: merge the mesh's vertices at the same position first (a file whose faces
             each have their own corners); ``faces`` and vertex indices then refer to the merged ones.
 
@@ -419,7 +425,10 @@ class EolBody(VertexImpulses, Body):
 
     @property
     def contact_impulse(self) -> np.ndarray:
-        """Momentum delivered by the colliders so far [kg m/s] (world)."""
+        """Momentum delivered by contact so far [kg m/s] (world): the colliders' push and friction,
+        and this body's own rows against other bodies (other EoL bodies; PBD and BEM surfaces it
+        pushes, ``set_moving_surfaces``). What a pusher of another method hands this body one
+        interval later is in ``coupling_impulse``."""
         return np.zeros(3) if self.state is None else self.state.contact_impulse
 
     @property
@@ -777,9 +786,11 @@ class EolBody(VertexImpulses, Body):
         self._m_total = 0.0
         self._load_force = np.zeros(3)
         self._colliders: list[Collider] = []
+        self._collider_mu: list[float] = []  # Coulomb friction against each (``attach_colliders``)
         self._surface = None  # contact samples and rows, made once the body can touch something
         self._row_groups = 0  # row groups (colliders, other methods' surfaces) with accumulators
         self._moving: list[_MovingSurface] = []  # other bodies' surfaces in reach this advance
+        self._collider_friction = np.zeros(3)  # the colliders' friction impulse of the last step (``_friction``)
         self._span = (0.0, 1.0)
         self._fraction = 0.0  # where in the span the moving surfaces were placed this step
         self._force_pass()
@@ -907,6 +918,8 @@ class EolBody(VertexImpulses, Body):
     def attach_colliders(self, surfaces: Surfaces) -> None:
         self._surfaces = surfaces
         self._colliders = list(surfaces)
+        # Coulomb friction against each collider (``wsim.contact.collider_friction``)
+        self._collider_mu = [collider_friction(c.friction, self.friction) for c in self._colliders]
         self._surface = None
         self._row_groups = 0
         self._contact_slots(len(self._colliders))
@@ -1171,7 +1184,7 @@ class EolBody(VertexImpulses, Body):
     def _step_contact(self, work: _StepWork, attempt: int, dt_guess: float) -> None:
         """The QP's multipliers on w, a (which become w_0, w_1 of Eq. 31 in place): this body's
         own rows (``work.sol``) and the velocity changes of the rows between bodies
-        (``work.changes``), then friction against other methods' surfaces."""
+        (``work.changes``), then friction against the colliders and other methods' surfaces."""
         if not (work.m or work.changes is not None):
             return
         if attempt:  # back to the unconstrained w, a
@@ -1190,7 +1203,7 @@ class EolBody(VertexImpulses, Body):
             self._launch(kc.add_node_changes, len(nodes),
                          [wp.array(nodes.astype(np.int32), dtype=wp.int32, device=d), wp.array(d0, dtype=wp.vec3d, device=d),
                           wp.array(d1, dtype=wp.vec3d, device=d), self._w, self._a])
-        if work.m and self._moving:
+        if work.m and (self._moving or any(self._collider_mu)):
             self._friction(work.m, dt_guess)
         work.t = self._tick("qp", work.t)
 
@@ -1260,6 +1273,7 @@ class EolBody(VertexImpulses, Body):
             st.contact_impulse = st.contact_impulse - self._axes() @ ((work.sol.lam0 + dt * work.sol.lam1) @ work.system.jsum)
             if self._moving:
                 st.contact_impulse = st.contact_impulse + self._react(work.m, dt)
+            st.contact_impulse = st.contact_impulse + self._collider_friction
         if work.changes is not None:  # and the rows between bodies
             st.contact_impulse = st.contact_impulse + work.pair_impulse[0] + dt * work.pair_impulse[1]
         if self._moving:
@@ -1568,32 +1582,42 @@ class EolBody(VertexImpulses, Body):
         return self._pair_rec_i, self._pair_rec_f, n
 
     def _friction(self, m: int, dt: float) -> None:
-        """Coulomb friction against each moving surface at the nodes its rows pushed (the m rows'
-        multipliers ``self._lam`` at dt), on w0; the impulses are kept for ``_react``. One
-        read-back for all surfaces."""
-        rubbing = [(k, ms) for k, ms in enumerate(self._moving) if ms.mu > 0.0]
+        """Coulomb friction at the nodes each rubbing row group pushed (the m rows' multipliers
+        ``self._lam`` at dt), on w0: against the colliders of nonzero friction, relative to the
+        collider's motion (kinematic colliders carry the body), and against the moving surfaces,
+        whose impulses are kept for ``_react``; ``_collider_friction`` is what the colliders'
+        friction gave this step (world). One read-back for all groups."""
+        self._collider_friction = np.zeros(3)
         for ms in self._moving:
             ms.friction = np.zeros(3)
+        t, eps = self.state.time, max(1e-6, 1e-3 * self.state.dt_prev)
+        rubbing = [(ci, *self._surfaces.velocity(ci, t, eps), mu, None)
+                   for ci, mu in enumerate(self._collider_mu) if mu > 0.0]
+        n_col = len(self._colliders)
+        rubbing += [(n_col + k, ms.G, ms.g, ms.mu, ms) for k, ms in enumerate(self._moving) if ms.mu > 0.0]
         if not rubbing:
             return
         if self._friction_acc.shape[0] < 2 * len(rubbing):
-            self._friction_acc = wp.zeros(2 * len(self._moving), dtype=wp.vec3d, device=self._device)
+            self._friction_acc = wp.zeros(2 * (n_col + len(self._moving)), dtype=wp.vec3d, device=self._device)
         acc = self._friction_acc
         acc.zero_()
         cells = int(np.prod(self._ccells))
-        for j, (k, ms) in enumerate(rubbing):
-            # the velocity change this surface's rows gave each node: -M^-1 J^T lambda over them
+        for j, (group, G, g, mu, _) in enumerate(rubbing):
+            # the velocity change this group's rows gave each node: -M^-1 J^T lambda over them
             self._tmp.zero_()
             self._launch(kc.apply_impulses, m,
                          [self._surface, self._row_packed, self._row_ids, self._mass, self._lam,
-                          len(self._colliders) + k, cells, wp.float64(dt), self._tmp, self._tmp])
+                          group, cells, wp.float64(dt), self._tmp, self._tmp])
             self._launch(kc.node_friction, self.grid.n_nodes,
-                         [self._surface, self._tmp, self._mass, self._w, self._a, wp.float64(dt), _mat(ms.G),
-                          wp.vec3d(*ms.g), wp.float64(ms.mu), acc[2 * j:2 * j + 2]])
+                         [self._surface, self._tmp, self._mass, self._w, self._a, wp.float64(dt), _mat(G),
+                          wp.vec3d(*g), wp.float64(mu), acc[2 * j:2 * j + 2]])
         host = acc.numpy()
-        for j, (_, ms) in enumerate(rubbing):
-            ms.friction = self._axes() @ host[2 * j]
-            ms.friction_moment = host[2 * j + 1]
+        for j, (_, _, _, _, ms) in enumerate(rubbing):
+            if ms is None:
+                self._collider_friction = self._collider_friction + self._axes() @ host[2 * j]
+            else:
+                ms.friction = self._axes() @ host[2 * j]
+                ms.friction_moment = host[2 * j + 1]
 
     def _react(self, m: int, dt: float) -> np.ndarray:
         """Hand each moving surface the opposite of the impulse this body took from it this step:
