@@ -849,8 +849,8 @@ def test_eol_bodies_push_pbd_bodies_unless_a_light_pbd_body_rests_on_one():
     heavy EoL ball bounced on the box at 363 mm/s when the ball on the block let the PBD bodies
     push, an independent check); without gravity the lighter method pushes. A PBD ball less than
     ``PBD_PUSHER_MASS_RATIO`` (5) times lighter than the block it rests on leaves the push to the
-    block: 0.2 m PBD cubes of 8, 4 and 2.6 kg on an 8 kg EoL box moved at 57-91, 27-74 and
-    20-37 mm/s pushing it (energy rising), 0.2-1.0 mm/s pushed (``_eol_pushes_pbd``'s table); the
+    block: 0.2 m PBD cubes of 8, 4 and 2.6 kg on an 8 kg EoL box moved at 43-88, 27-74 and
+    20-37 mm/s pushing it (energy rising), 0.2-3.2 mm/s pushed (``_eol_pushes_pbd``'s table); the
     strict "lighter" rule before switched the pusher between intervals for the 8 kg pair."""
     from wsim.world import PBD_PUSHER_MASS_RATIO, _eol_pushes_pbd
 

@@ -860,18 +860,19 @@ def _eol_pushes_pbd(pbd: Sequence[Body], eol: Sequence[Body], gravity: np.ndarra
     its lowest point above the middle of the EoL body's surface along the vertical): a light
     body resting on a much heavier one must keep itself out at once. Up to about that ratio the
     EoL body's push is the better (``tools/study_stacks.py``'s 0.2 m cubes, a PBD top on an 8 kg
-    EoL box, 2 cm off centre, mean speeds bottom / top over the third second [mm/s], 2026-11-28):
+    EoL box, 2 cm off centre, mean speeds bottom / top over the third second [mm/s], 2026-11-28,
+    ``tools/results/study_stacks_pusher_cpu.jsonl``):
 
     ======================  ==============  ===============
     PBD top                 EoL pushes      PBD pushes
     ======================  ==============  ===============
-    16 kg (0.5x the box)    7.4 / 4.0       116 / 102, +4.7 J
-    8 kg (1x)               0.49 / 0.50     57 / 91, +0.73 J
-    4 kg (2x lighter)       0.17 / 0.34     27 / 74, +0.23 J
+    16 kg (0.5x the box)    1.9 / 9.1       80 / 101, +3.7 J
+    8 kg (1x)               0.94 / 3.2      43 / 88, +0.79 J
+    4 kg (2x lighter)       0.18 / 0.61     27 / 74, +0.23 J
     2.6 kg (3x)             0.37 / 1.0      20 / 37, +0.07 J
-    1.6 kg (5x)             0.48 / 2.0      0.39 / 1.9
-    1 kg (8x)               0.45 / 2.8      0.12 / 0.86
-    0.5 kg (16x)            0.66 / 3.2      0.05 / 0.09
+    1.6 kg (5x)             0.48 / 1.9      0.39 / 1.9
+    1 kg (8x)               0.46 / 2.7      0.12 / 0.86
+    0.5 kg (16x)            0.63 / 3.3      0.04 / 0.09
     ======================  ==============  ===============
 
     With the lighter PBD body pushing (the rule before, strict: the EoL box's lumped mass
