@@ -7,7 +7,9 @@ Sixteen soft bodies (spheres, boxes, capsules and cylinders of about 0.2 m; E = 
 nu = 0.3, rho = 500 kg/m^3, light damping; friction 0.4 between them) fall in four layers of four
 into a 0.6 x 0.6 m bin (a ground plane and four static wall meshes) and settle into a pile. Bodies
 that may touch step together with one dt and one contact QP (Eqs. 27-29 across objects, as in the
-paper); the walls and ground are the paper's frictionless colliders. ``resolution`` (cells across each body) is the knob: 6 here so a CPU runs it in
+paper); the walls and ground hold them with friction 0.4 too (the paper's colliders are
+frictionless; EoL bodies feel a collider's friction since 2026-11-28). ``resolution`` (cells
+across each body) is the knob: 6 here so a CPU runs it in
 minutes; the paper's Table II uses 32 (``build(resolution=32)``, a GPU's job).
 """
 

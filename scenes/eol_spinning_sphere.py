@@ -25,7 +25,7 @@ RESOLUTION = 16
 
 def build(mesh: str | None = None, device: str | None = None) -> wsim.World:
     world = wsim.World(fps=FPS, gravity=(0.0, -9.81, 0.0), device=device)
-    world.add_collider(wsim.GroundPlane(0.0))
+    world.add_collider(wsim.GroundPlane(0.0, friction=0.0))  # frictionless, as in the paper
     shape = trimesh.creation.icosphere(subdivisions=3, radius=0.3) if mesh is None else wmesh.load_fitted(mesh, 0.6)
     label = wmesh.display_name(shape, "ball")
     shape = shape.copy()
