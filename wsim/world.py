@@ -875,9 +875,10 @@ def _eol_pushes_pbd(pbd: Sequence[Body], eol: Sequence[Body], gravity: np.ndarra
     0.5 kg (16x)            0.63 / 3.3      0.04 / 0.09
     ======================  ==============  ===============
 
-    With the lighter PBD body pushing (the rule before, strict: the EoL box's lumped mass
-    fluctuating about the PBD box's 8 kg switched the pusher between intervals) the 8 kg pair
-    moved at 7-8 / 11-12 mm/s, its energy rising 0.14-0.23 J.
+    With the lighter PBD body pushing (the rule before, strict, on the EoL box's lumped node
+    masses: their sum fluctuating about the PBD box's 8 kg switched the pusher between intervals)
+    the 8 kg pair moved at 7-8 / 11-12 mm/s, its energy rising 0.14-0.23 J. The masses compared
+    are now the EoL body's material mass (``EolBody.mass``, constant) and the PBD particles'.
     One answer serves every pair of the World, so where an EoL body also rests so on a PBD body
     lighter than itself the EoL bodies push (of the two failures the heavy EoL body's is the
     worse: a 0.9 kg PBD ball resting on an 11.6 kg EoL block let the World's PBD bodies push, and
@@ -920,7 +921,7 @@ def _eol_pushes_pbd(pbd: Sequence[Body], eol: Sequence[Body], gravity: np.ndarra
         masses = {id(p): _mass(p) for p in pbd}
         pbd_rests = False
         for e in eol:
-            m_e = _mass(e)
+            m_e = float(e.mass)  # its material's, constant: the lumped nodes' sum fluctuates step to step
             for p in (p for p in pbd if masses[id(p)] < m_e):
                 if rests(e, p):
                     return True  # a heavy EoL body on a light PBD body: the worse failure, first

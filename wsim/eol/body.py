@@ -148,7 +148,9 @@ class Plasticity:
 class StepRecord:
     """One EoL step: its start time and dt [s], contact rows and active rows, LS residual max |v*| [m/s],
     the overlap volume with the colliders at its start [m^3], the QP's active-set iterations (51:
-    the active set cycled and the NNLS fallback solved it)."""
+    the active set cycled and the NNLS fallback solved it), and the step the caps allowed there
+    [s] (the advance's equal split within the elastic limit and ``dt_max``: dt below it is Eq.
+    33's, or the QP's guess)."""
 
     time: float
     dt: float
@@ -157,6 +159,7 @@ class StepRecord:
     v_star: float
     overlap: float = 0.0
     qp_iterations: int = 0
+    cap: float = math.inf
 
 
 class EolBody(VertexImpulses, Body):
@@ -791,6 +794,7 @@ class EolBody(VertexImpulses, Body):
         self._row_groups = 0  # row groups (colliders, other methods' surfaces) with accumulators
         self._moving: list[_MovingSurface] = []  # other bodies' surfaces in reach this advance
         self._collider_friction = np.zeros(3)  # the colliders' friction impulse of the last step (``_friction``)
+        self._rubbing: list[_MovingSurface | None] = []  # the row groups whose friction awaits its read
         self._span = (0.0, 1.0)
         self._fraction = 0.0  # where in the span the moving surfaces were placed this step
         self._force_pass()
@@ -1066,7 +1070,7 @@ class EolBody(VertexImpulses, Body):
         while all(b._failure is None for b in bodies) and bodies[0].time < t1 - eps:
             left = t1 - bodies[0].time
             limit = min(min(b.dt_elastic, b.dt_max or math.inf) for b in bodies)
-            cap = left / max(math.ceil(left / limit - 1e-9), 1)
+            cap = left / max(math.ceil((left - eps) / limit), 1)  # eps: the time's round-off
             _step_together(bodies, keys, cap)
         if all(b._failure is None for b in bodies):
             for b in bodies:
@@ -1143,7 +1147,7 @@ class EolBody(VertexImpulses, Body):
         d = self._device
         st = self.state
         n = self.grid.n_nodes
-        work = _StepWork(t=time.perf_counter(), dt_guess=dt_guess)
+        work = _StepWork(t=time.perf_counter(), dt_guess=dt_guess, cap=cap)
         L, c = self._lagrangian_field()
         self._body_acc = self._body_acceleration(st.time) if self._accelerations else np.zeros(3)
         g_axes = self._axes().T @ (self._gravity + self._body_acc)
@@ -1270,6 +1274,7 @@ class EolBody(VertexImpulses, Body):
         (L0, c0), (L1, c1), _ = work.fields
         L_new, c_new = L0 + dt * L1, c0 + dt * c1
         if work.sol is not None:  # momentum the QP delivered: sum_s m_s (w_s - w_hat_s) = -J^T lambda
+            self._read_friction()
             st.contact_impulse = st.contact_impulse - self._axes() @ ((work.sol.lam0 + dt * work.sol.lam1) @ work.system.jsum)
             if self._moving:
                 st.contact_impulse = st.contact_impulse + self._react(work.m, dt)
@@ -1297,7 +1302,8 @@ class EolBody(VertexImpulses, Body):
                                        v_star=float(max(vmax[:3].max(), 0.0) + dt * vmax[3:].max()),
                                        overlap=(0.0 if work.system is None else float(work.system.overlap.sum()))
                                        + work.pair_overlap,
-                                       qp_iterations=0 if work.sol is None else work.sol.iterations))
+                                       qp_iterations=0 if work.sol is None else work.sol.iterations,
+                                       cap=work.cap))
         st.time += dt
         st.steps += 1
         st.dt_prev = dt
@@ -1586,8 +1592,9 @@ class EolBody(VertexImpulses, Body):
         ``self._lam`` at dt), on w0: against the colliders of nonzero friction, relative to the
         collider's motion (kinematic colliders carry the body), and against the moving surfaces,
         whose impulses are kept for ``_react``; ``_collider_friction`` is what the colliders'
-        friction gave this step (world). One read-back for all groups."""
+        friction gave this step (world), both read back at the finish (``_read_friction``)."""
         self._collider_friction = np.zeros(3)
+        self._rubbing = []
         for ms in self._moving:
             ms.friction = np.zeros(3)
         t, eps = self.state.time, max(1e-6, 1e-3 * self.state.dt_prev)
@@ -1611,13 +1618,22 @@ class EolBody(VertexImpulses, Body):
             self._launch(kc.node_friction, self.grid.n_nodes,
                          [self._surface, self._tmp, self._mass, self._w, self._a, wp.float64(dt), _mat(G),
                           wp.vec3d(*g), wp.float64(mu), acc[2 * j:2 * j + 2]])
-        host = acc.numpy()
-        for j, (_, _, _, _, ms) in enumerate(rubbing):
+        self._rubbing = [ms for *_, ms in rubbing]  # read by ``_read_friction`` at the finish
+
+    def _read_friction(self) -> None:
+        """The last ``_friction``'s impulses, read back once the step's dt is chosen (the group has
+        synchronized by then: no wait of its own, one read per step however many QP attempts):
+        ``_collider_friction`` and each rubbing surface's ``friction`` and ``friction_moment``."""
+        if not self._rubbing:
+            return
+        host = self._friction_acc.numpy()
+        for j, ms in enumerate(self._rubbing):
             if ms is None:
                 self._collider_friction = self._collider_friction + self._axes() @ host[2 * j]
             else:
                 ms.friction = self._axes() @ host[2 * j]
                 ms.friction_moment = host[2 * j + 1]
+        self._rubbing = []
 
     def _react(self, m: int, dt: float) -> np.ndarray:
         """Hand each moving surface the opposite of the impulse this body took from it this step:
@@ -1797,6 +1813,7 @@ class _StepWork:
 
     t: float
     dt_guess: float = 0.0  # the QP's dt (the step's dt is at most this)
+    cap: float = math.inf  # the step the caps allow (``advance_group``'s equal split)
     m: int = 0
     system: ContactSystem | None = None
     order: np.ndarray | None = None
