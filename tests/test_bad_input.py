@@ -65,6 +65,10 @@ def test_handle_and_collider_validation():
         wsim.Handle([1, 1], lambda t: np.eye(4))
     with pytest.raises(wsim.InvalidParameter, match="friction"):
         wsim.GroundPlane(friction=-0.1)
+    with pytest.raises(wsim.InvalidParameter, match="collider 'ground': friction = nan is not finite"):
+        wsim.GroundPlane(friction=float("nan"))
+    with pytest.raises(wsim.InvalidParameter, match="friction must be a number, got 'rough'"):
+        wsim.MeshCollider((v, f), friction="rough")
     scaled = np.diag([2.0, 1.0, 1.0, 1.0])
     with pytest.raises(wsim.InvalidParameter, match="rigid"):
         wsim.MeshCollider((v, f), transform=scaled, name="squash")

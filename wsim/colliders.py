@@ -22,15 +22,15 @@ import numpy as np
 import warp as wp
 
 from wsim import mesh as wmesh
-from wsim.validate import as_vec3, call_user
+from wsim.validate import as_vec3, call_user, finite_number
 from wsim.errors import InvalidParameter
 
 TransformLike = Union[np.ndarray, Callable[[float], np.ndarray], None]
 
 
 def _check_friction(friction: float, name: str) -> float:
-    mu = float(friction)
-    if not np.isfinite(mu) or mu < 0.0:
+    mu = finite_number(friction, f"collider '{name}': friction")  # a string or NaN: said so, not a ValueError
+    if mu < 0.0:
         raise InvalidParameter(f"collider '{name}': friction = {friction} must be >= 0")
     return mu
 
