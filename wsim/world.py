@@ -686,9 +686,10 @@ def _couple_surfaces(pusher: Body, targets: Sequence[Body], index: dict[int, int
             kept = getattr(b, "vertices_kept_out", False)
             # an EoL pusher's rows share each correction with the pushed body's rigid give
             # (``EolBody.set_moving_surfaces``), a PBD pusher's particles with a BEM body's
-            # (``PbdBody.set_moving_surfaces``; a PBD body pushes an EoL body only while it rests,
-            # lighter, on it, ``_eol_pushes_pbd``, and takes it as immovable: with the EoL body's
-            # give an 8.6 kg EoL cube on a coarse 6.5 kg PBD box walked 10.6 mm in 0.5 s instead of 6.0)
+            # (``PbdBody.set_moving_surfaces``; a PBD body pushes an EoL body only while it rests on
+            # one ``PBD_PUSHER_MASS_RATIO`` times heavier, ``_eol_pushes_pbd``, and takes it as
+            # immovable: with the EoL body's give an 8.6 kg EoL cube on a coarse 6.5 kg PBD box
+            # walked 10.6 mm in 0.5 s instead of 6.0)
             rigid = None
             yields = getattr(pusher, "yielding_partners", False) and hasattr(b, "world_inertia")
             if yields and (hasattr(b, "constraint_begin") or not hasattr(pusher, "advance_together")):
@@ -928,7 +929,7 @@ def _eol_pushes_pbd(pbd: Sequence[Body], eol: Sequence[Body], gravity: np.ndarra
                 if PBD_PUSHER_MASS_RATIO * masses[id(p)] <= m_e:
                     pbd_rests = pbd_rests or rests(p, e)
         return not pbd_rests
-    return max(b.mass for b in pbd) >= min(float(b.node_masses().sum()) for b in eol)
+    return max(b.mass for b in pbd) >= min(float(b.mass) for b in eol)  # material masses: constant
 
 
 def _automatic_coupling_steps(bodies: Sequence[Body], frame_dt: float) -> int:
