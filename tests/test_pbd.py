@@ -376,11 +376,14 @@ def test_mesh_collider_keeps_body_outside(device):
     assert lowest < 0.2 + 0.02  # resting on the table
 
 
-def test_friction_stops_a_sliding_block_at_the_coulomb_distance(device):
-    """A stiff block sliding at v0 on a plane with friction mu stops after v0^2 / (2 mu g)."""
+@pytest.mark.parametrize("ground, own", [(0.4, None), (0.1, 0.4), (0.4, 0.1)])
+def test_friction_stops_a_sliding_block_at_the_coulomb_distance(device, ground, own):
+    """A stiff block sliding at v0 on a plane stops after v0^2 / (2 mu g), mu the larger of the
+    ground's and the block's own friction (the block's None: the ground's), as for BEM and EoL
+    bodies (``wsim.contact.collider_friction``; PBD bodies took the collider's alone before)."""
     mu, v0 = 0.4, 2.0
     world = wsim.World(fps=60, device=device)
-    world.add_collider(wsim.GroundPlane(friction=mu))
+    world.add_collider(wsim.GroundPlane(friction=ground))
     stiff = wsim.ElasticMaterial(E=1e8, nu=0.3, rho=1000.0)
     body = world.add(
         wsim.PbdBody(
@@ -390,6 +393,7 @@ def test_friction_stops_a_sliding_block_at_the_coulomb_distance(device):
             position=(0.0, 0.05, 0.0),
             velocity=(v0, 0.0, 0.0),
             substeps=20,
+            friction=own,
         )
     )
     for _ in range(60):
@@ -397,6 +401,23 @@ def test_friction_stops_a_sliding_block_at_the_coulomb_distance(device):
     travelled = body.points()[:, 0].mean()
     assert travelled == pytest.approx(v0**2 / (2 * mu * G), rel=0.1)
     assert np.abs(body.velocities()[:, 0]).max() < 1e-3
+
+
+def test_blocks_of_different_friction_stop_at_their_own_coulomb_distances():
+    """Two blocks in one World, frictions 0.2 and 0.6 on a ground of 0.1: each stops at
+    v0^2 / (2 mu g) with its own mu (bodies that would step in one batch do not when their
+    frictions differ: a batch takes its first body's collider friction)."""
+    v0 = 2.0
+    world = wsim.World(fps=60, device="cpu")
+    world.add_collider(wsim.GroundPlane(friction=0.1))
+    stiff = wsim.ElasticMaterial(E=1e8, nu=0.3, rho=1000.0)
+    blocks = [world.add(wsim.PbdBody(trimesh.creation.box(extents=(0.2, 0.1, 0.2)), stiff, tets="auto", name=f"block{k}",
+                                     position=(0.0, 0.05, 0.5 * k), velocity=(v0, 0.0, 0.0), substeps=20,
+                                     friction=mu)) for k, mu in enumerate((0.2, 0.6))]
+    for _ in range(75):
+        world.step()
+    for body, mu in zip(blocks, (0.2, 0.6)):
+        assert body.points()[:, 0].mean() == pytest.approx(v0**2 / (2 * mu * G), rel=0.1)
 
 
 # ----------------------------------------------------------------------------- colouring

@@ -34,8 +34,10 @@ def pair_friction(a: float | None, b: float | None) -> float:
 
 
 def collider_friction(collider: float, body: float | None) -> float:
-    """Coulomb friction between a collider and a body of friction ``body`` (BEM and EoL bodies;
-    None: the collider's alone): the larger."""
+    """Coulomb friction between a collider and a body of friction ``body`` (every method; None:
+    the collider's alone): the larger, as between two bodies (``pair_friction``) and MuJoCo's
+    rule. A body given friction for contact with other bodies cannot have less on a collider, so
+    a frictionless collider needs bodies that set none (or zero)."""
     return collider if body is None else max(collider, body)
 
 

@@ -41,7 +41,7 @@ def batch_key(body: PbdBody) -> tuple | None:
     if any(f.edge is not None for f in body._families):  # hinges with their edges: launched alone
         return None
     return (body._device.alias, body.substeps, body.dt, body.iterations, body.damping, body.drag,
-            body.contact_margin, body.use_graph, body._cpu_serial_sweep, body._block_dim)
+            body.contact_margin, body.friction, body.use_graph, body._cpu_serial_sweep, body._block_dim)
 
 
 class PbdBatch:
@@ -71,7 +71,7 @@ class PbdBatch:
         self.bodies = list(bodies)
         self._device = device = b0._device
         for name in ("iterations", "damping", "drag", "contact_margin", "use_graph", "solver", "omega",
-                     "_cpu_serial_sweep", "_block_dim", "_gravity", "_planes", "_surfaces", "_mesh_surfaces"):
+                     "_cpu_serial_sweep", "_block_dim", "_gravity", "friction", "_planes", "_surfaces", "_mesh_surfaces"):
             setattr(self, name, getattr(b0, name))
         self.handles = ()
         self._substep_pipeline = False  # no handles: whole-frame graphs

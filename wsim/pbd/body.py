@@ -30,6 +30,7 @@ from wsim import mesh as wmesh
 from wsim.body import Body, checked_vertex_impulses
 from wsim.cache import OperatorCache
 from wsim.colliders import Surfaces
+from wsim.contact import collider_friction
 from wsim.errors import InvalidParameter, SimulationDiverged
 from wsim.handles import Handle, as_indices
 from wsim.validate import as_rotation, as_vec3, finite_number, positive_int
@@ -183,8 +184,9 @@ class PbdBody(Body):
             least that far from colliders: overlap at the start is removed from the contacting
             particles without velocity, but the rest of the body still feels it as a push.
         friction: Coulomb coefficient against other bodies (the larger of the two bodies' values;
-            None: ``wsim.contact.DEFAULT_FRICTION``, 0.5). Contact with a collider uses the
-            collider's ``friction``. Give it here: a contact records it when the bodies come into
+            None: ``wsim.contact.DEFAULT_FRICTION``, 0.5) and against colliders (the larger of it
+            and the collider's, ``wsim.contact.collider_friction``; None: the collider's alone),
+            as for BEM and EoL bodies. Give it here: a contact records it when the bodies come into
             reach (and a CUDA graph of their frame bakes it in).
         cache: store/load the built model through ``wsim.cache`` (True, False or an ``OperatorCache``).
         use_graph: replay each frame as a CUDA graph on CUDA devices.
@@ -653,7 +655,7 @@ class PbdBody(Body):
         for i, c in enumerate(surfaces):
             plane = surfaces.plane(i)
             if plane is not None:
-                self._planes.append((plane[0], plane[1], c.friction))
+                self._planes.append((plane[0], plane[1], collider_friction(c.friction, self.friction)))
             else:
                 self._mesh_surfaces.append(i)
         self._layout = None  # rebuild the per-frame buffers and the CUDA graph
@@ -717,7 +719,7 @@ class PbdBody(Body):
                 self._mesh_colliders.append(
                     _DeviceMeshCollider(
                         index=i,
-                        friction=c.friction,
+                        friction=collider_friction(c.friction, self.friction),
                         mesh=c.device_mesh(device),
                         transforms=wp.zeros(substeps + 1, dtype=wp.mat44),
                         inverses=wp.zeros(substeps + 1, dtype=wp.mat44),
