@@ -8,7 +8,8 @@ the USD writer. BEM bodies of one dt that are joined by ``PointJoint`` s or may 
 (``wsim.constraints.solve_group``, ``wsim.contact``); PBD bodies that may touch step their
 substeps in lockstep (``wsim.pbd.contact``); EoL bodies that may touch step together with one dt
 and one contact QP (``EolBody.advance_group``, ``wsim.eol.pairs``). Across methods contact is an
-explicit exchange at a coupling interval: one body (the pusher: PBD, or EoL against BEM) keeps
+explicit exchange at a coupling interval: one body (the pusher: PBD or EoL against BEM; between PBD
+and EoL bodies the method ``_eol_pushes_pbd`` picks per group of EoL bodies) keeps
 itself out of the other's surface as it moves over the interval and the other is handed the
 opposite impulse over the next interval (``_couple_surfaces``).
 """
@@ -234,14 +235,16 @@ class World:
             self._pbd = [b for b in self.bodies if hasattr(b, "advance_together")] if self.body_contact else []
             self._lockstep = self._pbd if len(self._pbd) > 1 else []
             self._lockstep_graphs: dict = {}  # the recorded lockstep frame (CUDA)
-            # explicit coupling: bodies that are pushed (BEM; EoL or PBD, one of the two methods,
-            # ``_eol_pushes_pbd``, decided again before each interval) and that push (PBD, EoL). A pusher keeps itself out of
+            # explicit coupling: bodies that are pushed (BEM; between EoL and PBD bodies the method
+            # ``_eol_pushes_pbd`` picks per group of EoL bodies that may touch, decided again before
+            # each interval, ``_update_roles``) and that push (PBD, EoL). A pusher keeps itself out of
             # its targets' surfaces after they have stepped and hands them the momentum
             # (``_targets``), which reaches them one interval late. EoL bodies do not push each
             # other (touching EoL bodies step together with one QP, ``EolBody.advance_group``), nor
             # PBD bodies each other (lockstep, ``wsim.pbd.contact``).
             self._eol = [b for b in self.bodies if hasattr(b, "advance_group")] if self.body_contact else []
             self._eol_groups: list[list[Body]] | None = None  # this interval's EoL groups (``_update_roles``)
+            self._interval_points: dict[int, np.ndarray] = {}  # points read at the interval's start, by id
             first = _eol_pushes_pbd(self._pbd, self._eol)
             self._assign_roles({id(b): first for b in self._eol})
             self._apart: list[tuple[Body, Body]] = []  # BEM bodies that cannot touch (``_check_apart``)
@@ -317,12 +320,16 @@ class World:
         points: dict[int, np.ndarray] = {}
         boxes: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._eol_groups = _touching(self._eol, interval, g, points, boxes)
+        self._interval_points = points  # read before anything steps: the interval's start (``_step_interval``)
+        # without gravity the answer is always that the EoL bodies push: no PBD body is read; with
+        # it only PBD bodies lighter than an EoL body can change it (``_eol_pushes_pbd``)
+        pbd = [p for p in self._pbd if g > 0.0 and _mass(p) < max(float(e.mass) for e in self._eol)]
         pbd_boxes = [_reach_box(p, _points_of(p, points), interval, g, getattr(p, "contact_margin", None) or 0.0)
-                     for p in self._pbd]
+                     for p in pbd]
         eol_pushes = dict(self._eol_pushes)
         for group in self._eol_groups:
-            near = [p for p, pb in zip(self._pbd, pbd_boxes) if any(_overlap(pb, boxes[id(e)]) for e in group)]
-            if near:
+            near = [p for p, pb in zip(pbd, pbd_boxes) if any(_overlap(pb, boxes[id(e)]) for e in group)]
+            if near or g == 0.0:
                 pushes = _eol_pushes_pbd(near, group, self.gravity, interval, points)
             else:  # nothing to push: as before (all its bodies' one answer, or the first's)
                 pushes = eol_pushes[id(group[0])]
@@ -395,6 +402,7 @@ class World:
         return out
 
     def _advance_interval(self, t0: float, t1: float) -> None:
+        self._interval_points = {}
         if self._pbd and self._eol:
             self._timed("coupling", self._update_roles, t1 - t0)
         if self._implicit or self._supported:
@@ -489,8 +497,10 @@ class World:
         late = {id(b) for b in pushers} | {id(b) for b in self._eol}
         coupled = pushers or any(self._targets[id(p)] for p in self._eol)
         start: dict[int, np.ndarray] = {}
-        if coupled:
-            self._timed("coupling", lambda: start.update({id(b): b.points() for b in self._pushed}))
+        if coupled:  # (an explicit interval reuses what ``_update_roles`` read at its start)
+            known = self._interval_points if implicit is None else {}
+            self._timed("coupling", lambda: start.update({id(b): known[id(b)] if id(b) in known else b.points()
+                                                          for b in self._pushed}))
         g = float(np.linalg.norm(self.gravity))
         # bodies that push nothing go first (their surfaces are then known over the interval) ...
         in_set = {id(b): s for s in self._sets for b in s.bodies}
@@ -715,9 +725,9 @@ def _couple_surfaces(pusher: Body, targets: Sequence[Body], index: dict[int, int
             kept = getattr(b, "vertices_kept_out", False)
             # an EoL pusher's rows share each correction with the pushed body's rigid give
             # (``EolBody.set_moving_surfaces``), a PBD pusher's particles with a BEM body's
-            # (``PbdBody.set_moving_surfaces``; a PBD body pushes an EoL body only while it rests on
-            # one ``PBD_PUSHER_MASS_RATIO`` times heavier, ``_eol_pushes_pbd``, and takes it as
-            # immovable: with the EoL body's give an 8.6 kg EoL cube on a coarse 6.5 kg PBD box
+            # (``PbdBody.set_moving_surfaces``; a PBD body pushes the EoL bodies of a group whose answer
+            # is that they do not push, ``_eol_pushes_pbd``: under gravity, a PBD body rests on one of
+            # them ``PBD_PUSHER_MASS_RATIO`` times heavier; it takes them as immovable: with the EoL body's give an 8.6 kg EoL cube on a coarse 6.5 kg PBD box
             # walked 10.6 mm in 0.5 s instead of 6.0)
             rigid = None
             yields = getattr(pusher, "yielding_partners", False) and hasattr(b, "world_inertia")

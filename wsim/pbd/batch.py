@@ -13,7 +13,8 @@ padded to whole reduction blocks with massless particles that nothing touches.
 
 The launch sequence is ``PbdBody``'s own (its methods run over the batch's arrays). A batch
 forms from bodies that agree on what those launches bake in: device, Gauss-Seidel solver,
-substeps, iterations, damping, drag, contact margin, graph use; bodies with handles or a
+substeps, iterations, damping, drag, contact margin, friction (a collider's is the larger of
+its and the body's), graph use; bodies with handles or a
 surface volume constraint step alone. In a frame where a member touches another body or another
 method's surface (``wsim.pbd.contact``), every member steps on its own.
 """
