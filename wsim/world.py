@@ -328,16 +328,19 @@ class World:
                      for p in pbd]
         eol_pushes = dict(self._eol_pushes)
 
+        def near(group: list[Body]) -> list[Body]:  # the PBD bodies in the group's reach
+            return [p for p, pb in zip(pbd, pbd_boxes) if any(_overlap(pb, boxes[id(e)]) for e in group)]
+
         def answer(group: list[Body]) -> bool:
-            near = [p for p, pb in zip(pbd, pbd_boxes) if any(_overlap(pb, boxes[id(e)]) for e in group)]
-            if near or g == 0.0:
-                return _eol_pushes_pbd(near, group, self.gravity, interval, points)
+            close = near(group)
+            if close or g == 0.0:
+                return _eol_pushes_pbd(close, group, self.gravity, interval, points)
             return eol_pushes[id(group[0])]  # nothing to push: as before (its one answer, or the first's)
 
         groups = []
         for group in self._eol_groups:
             pushes = answer(group)
-            if len(group) > 1 and g > 0.0:
+            if len(group) > 1 and near(group):
                 # a group whose bodies can meet only through the cell the groups are grown by may be
                 # split where its parts want different pushers: a 1.2 kg PBD box, 6 cm thick,
                 # between a 19 kg EoL block under it and a 3.5 kg EoL ball on it joined the two in one
@@ -744,10 +747,11 @@ def _couple_surfaces(pusher: Body, targets: Sequence[Body], index: dict[int, int
             kept = getattr(b, "vertices_kept_out", False)
             # an EoL pusher's rows share each correction with the pushed body's rigid give
             # (``EolBody.set_moving_surfaces``), a PBD pusher's particles with a BEM body's
-            # (``PbdBody.set_moving_surfaces``; a PBD body pushes the EoL bodies of a group whose answer
-            # is that they do not push, ``_eol_pushes_pbd``: under gravity, a PBD body rests on one of
-            # them ``PBD_PUSHER_MASS_RATIO`` times heavier; it takes them as immovable: with the EoL body's give an 8.6 kg EoL cube on a coarse 6.5 kg PBD box
-            # walked 10.6 mm in 0.5 s instead of 6.0)
+            # (``PbdBody.set_moving_surfaces``; a PBD body pushes the EoL bodies of a group whose
+            # answer is that they do not push, ``_eol_pushes_pbd``: under gravity, a PBD body rests
+            # on one of them ``PBD_PUSHER_MASS_RATIO`` times heavier; it takes them as immovable:
+            # with the EoL body's give an 8.6 kg EoL cube on a coarse 6.5 kg PBD box walked 10.6 mm
+            # in 0.5 s instead of 6.0)
             rigid = None
             yields = getattr(pusher, "yielding_partners", False) and hasattr(b, "world_inertia")
             if yields and (hasattr(b, "constraint_begin") or not hasattr(pusher, "advance_together")):
