@@ -16,7 +16,8 @@ same factors to round-off (pivoting may differ only on exact ties).
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+import contextlib
+from typing import Any, Iterator, NamedTuple
 
 import numpy as np
 import scipy.linalg
@@ -34,6 +35,30 @@ def cupy_module():
     except Exception:  # not installed, or no usable CUDA driver
         return None
     return cupy
+
+
+class _StreamHandle:
+    """A raw CUDA stream as an object of the CUDA stream protocol (``__cuda_stream__``: version
+    0 and the handle), which CuPy 14 takes (``cupy.cuda.Stream.from_external``) in place of its
+    deprecated ``ExternalStream``."""
+
+    def __init__(self, handle: int) -> None:
+        self.handle = int(handle)
+
+    def __cuda_stream__(self) -> tuple[int, int]:
+        return (0, self.handle)
+
+
+@contextlib.contextmanager
+def on_stream(cp: Any, ordinal: int, handle: int) -> Iterator[None]:
+    """CuPy's work inside runs on device ``ordinal``'s CUDA stream ``handle`` (a Warp stream's
+    ``cuda_stream``: ordered with Warp's launches, no synchronization). CuPy 14's stream protocol
+    where it has it, else ``ExternalStream`` (CuPy 13, which has no ``from_external``)."""
+    from_external = getattr(cp.cuda.Stream, "from_external", None)
+    stream = (from_external(_StreamHandle(handle)) if from_external is not None
+              else cp.cuda.ExternalStream(int(handle), int(ordinal)))
+    with cp.cuda.Device(ordinal), stream:
+        yield
 
 
 def resolve(backend: str, cuda: bool) -> str:

@@ -35,7 +35,7 @@ import numpy as np
 import warp as wp
 
 from wsim.bem.correction import Correction, load_balance
-from wsim.bem.factorization import cupy_module
+from wsim.bem.factorization import cupy_module, on_stream
 from wsim.bem.operators import PRECISIONS, BemOperators
 from wsim.errors import InvalidParameter
 from wsim.launch import concrete
@@ -568,7 +568,7 @@ def history_many(so: StepOperators, U: wp.array, P: wp.array, B: wp.array, steps
         h.numpy()[:, :n3] = out
         return
     cp = cupy_module()
-    with cp.cuda.Device(so.device.ordinal), cp.cuda.ExternalStream(wp.get_stream(so.device).cuda_stream):
+    with on_stream(cp, so.device.ordinal, wp.get_stream(so.device).cuda_stream):
         H, G = (cp.asarray(a).reshape(n_max, n3, so.pitch) for a in (so.H, so.G))
         DQ = cp.asarray(so.DQ)
         Uc, Pc, Bc = cp.asarray(U), cp.asarray(P), cp.asarray(B)
@@ -596,7 +596,7 @@ def solve_many(so: StepOperators, p: wp.array | None, h: wp.array, u: wp.array) 
         u.numpy()[:, :n3] = out
         return
     cp = cupy_module()
-    with cp.cuda.Device(so.device.ordinal), cp.cuda.ExternalStream(wp.get_stream(so.device).cuda_stream):
+    with on_stream(cp, so.device.ordinal, wp.get_stream(so.device).cuda_stream):
         out = cp.matmul(cp.asarray(h), cp.asarray(so.H0_inv).T)
         if p is not None:
             out += cp.matmul(cp.asarray(p), cp.asarray(so.H0_inv_Gp).T)
