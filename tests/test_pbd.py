@@ -94,59 +94,6 @@ def test_linear_momentum_conserved_without_external_forces(device, tets):
     assert np.abs(r_now - r_rest).max() > 1e-3
 
 
-@pytest.mark.parametrize("batched", [False, True], ids=["one", "batch"])
-def test_a_push_is_taken_as_a_constant_force_over_the_next_advance(device, batched):
-    """``PbdBody.add_vertex_impulses`` (what an EoL body pushed the surface with) is taken over
-    the next advance as forces J / T (``kernels.pbd.add_push`` each substep): the momentum changes
-    by sum J, and the centre of mass moves by (P / M) T (S + 1) / (2 S) in the advance's S
-    substeps (symplectic Euler under a constant force; the internal constraints move no centre of
-    mass), not the (P / M) T of a push taken at once at its start, which the body's contacts then
-    answered within the interval. The advance after moves it on at P / M. ``batched``: a second,
-    identical body makes the two a ``PbdBatch``; the pushed one then steps on its own."""
-    world = wsim.World(gravity=(0.0, 0.0, 0.0), device=device)
-    bodies = [world.add(wsim.PbdBody(sphere(0.2, 1), name=f"b{k}", position=(k * 1.0, 0.0, 0.0), tets="auto"))
-              for k in range(2 if batched else 1)]
-    body = bodies[0]
-    world.step()  # bound, at rest
-    assert (body._batch is not None) is batched
-    n, T = body.model.n_surface, world.frame_dt
-    S = body.substeps_for(T)
-    rng = np.random.default_rng(3)
-    J = body.masses[:n, None] * (np.array([0.3, -0.1, 0.05]) + 0.05 * rng.standard_normal((n, 3)))
-    P, M = J.sum(axis=0), body.mass
-    c0 = body.center_of_mass()
-    body.add_vertex_impulses(J, T)
-    world.step()
-    p1, _ = momentum(body)
-    assert np.linalg.norm(p1 - P) < 1e-4 * np.linalg.norm(P)
-    moved = body.center_of_mass() - c0
-    expected = P / M * T * (S + 1) / (2 * S)
-    assert S > 1 and np.linalg.norm(moved - expected) < 1e-3 * np.linalg.norm(expected), (moved, expected)
-    c1 = body.center_of_mass()
-    world.step()  # nothing more to take
-    assert np.linalg.norm(momentum(body)[0] - P) < 1e-4 * np.linalg.norm(P)
-    assert np.linalg.norm(body.center_of_mass() - c1 - P / M * T) < 1e-3 * np.linalg.norm(P / M * T)
-    if batched:  # the other member took none
-        assert np.linalg.norm(momentum(bodies[1])[0]) < 1e-6
-
-
-def test_a_frame_stepped_again_after_a_restore_takes_no_stale_push(tmp_path):
-    """A checkpoint saved before a push was handed over holds none: after a restore the frame
-    stepped again moves nothing (the acceleration the push was taken with is not kept; the
-    advance's span alone would match it again)."""
-    world = wsim.World(gravity=(0.0, 0.0, 0.0), device="cpu")
-    body = world.add(wsim.PbdBody(sphere(0.2, 1), name="b", tets="auto"))
-    world.step()
-    saved = world.checkpoint(tmp_path / "at_rest.h5")
-    n = body.model.n_surface
-    body.add_vertex_impulses(np.tile([0.01, 0.0, 0.0], (n, 1)), world.frame_dt)
-    world.step()
-    assert momentum(body)[0][0] > 0.01 * n * 0.99
-    world.restore(saved)
-    world.step()
-    assert np.linalg.norm(momentum(body)[0]) < 1e-7
-
-
 def test_spin_loss_is_first_order_in_the_substep():
     """Plain XPBD (``conserve_angular_momentum=False``; the default restores it) with symplectic Euler is not angular-momentum conserving: the straight-line prediction of a
     rotating particle is projected back radially, losing about omega^2 h of the spin per second

@@ -52,7 +52,7 @@ class PbdState:
 
     x: wp.array
     v: wp.array
-    # momentum an EoL body pushed the surface particles with, to be taken over the next advance
+    # momentum an EoL body pushed the surface particles with, to be taken at the next step's start
     # (``add_vertex_impulses``) [N s] (V, 3), and all it has handed so far [N s] (3,)
     push: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     coupling_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -525,11 +525,12 @@ class PbdBody(Body):
     def add_vertex_impulses(self, impulses: Any, duration: float) -> None:
         """Deliver momentum ``impulses`` [N s] (V, 3) per surface vertex (world axes): the World
         hands a PBD body what an EoL body pushed it with over the last coupling interval (the EoL
-        QP takes the PBD body's rigid give, ``EolBody.set_moving_surfaces``). The body takes it
-        over its next advance as constant forces J / T (T that advance's length; pinned and
-        driven particles take none), as BEM and EoL bodies take theirs, so its contacts answer
-        the push as it comes (``_take_push``). ``duration`` [s] is the interval it was pushed over
-        (checked, as for the other methods)."""
+        QP takes the PBD body's rigid give, ``EolBody.set_moving_surfaces``). It is taken at the
+        start of the body's next step, each surface particle's velocity changing by J / m at once
+        (pinned and driven particles take none), so that the velocities read between steps are
+        those the step ended with (taken at once, a box resting on an EoL box read g h = 9.8 mm/s
+        upward at 1 ms intervals). ``duration`` [s] is that interval (checked, as for the other
+        methods)."""
         self._require_bound()
         n = self.model.n_surface
         J = checked_vertex_impulses(self.name, impulses, n, duration)
@@ -537,42 +538,16 @@ class PbdBody(Body):
         self.state.push = self.state.push + J
         self.state.coupling_impulse = self.state.coupling_impulse + J.sum(axis=0)
 
-    def _take_push(self, t0: float, t1: float) -> None:
-        """Turn the pending push (``add_vertex_impulses``) into the surface particles' constant
-        accelerations J / (m T) over the advance from t0 to t1 (``kernels.pbd.add_push``, each
-        substep; exact in momentum). Taken at once at the advance's start, the contacts answered
-        it within the interval, so a box resting on a BEM cube under a 3.5 kg EoL ball read +34
-        mm/s upward at every frame end while its centre stayed put. Called again for the same
-        advance it changes nothing; the accelerations are zeroed once an advance has none. The
-        array is made on the first push (a body never pushed launches nothing more) and stays:
-        recorded frames include its launch from then on."""
+    def _take_push(self) -> None:
+        """Add the pending push (``add_vertex_impulses``) to the surface particles' velocities."""
         st = self.state
-        if st is None:
+        if st is None or not np.any(st.push):
             return
-        if np.any(st.push):
-            n = self.model.n_surface
-            if self._push_acc is None:
-                self._push_acc = wp.zeros(n, dtype=wp.vec3, device=self._device)
-                self._graph = None  # the frame's launches change
-            T = max(float(t1 - t0), 1e-300)
-            self._push_acc.assign((st.push / (self.masses[:n, None] * T)).astype(np.float32))
-            st.push = np.zeros_like(st.push)
-            self._push_span = (t0, t1)
-        elif self._push_span is not None and self._push_span != (t0, t1):
-            self._push_acc.zero_()
-            self._push_span = None
-
-    def _state_loaded(self) -> None:
-        """After a restore: no push is being taken (the state's pending one is taken at the next
-        advance; an interval stepped again must not keep the acceleration it had)."""
-        if self._push_acc is not None:
-            self._push_acc.zero_()
-        self._push_span = None
-
-    @property
-    def pushed(self) -> bool:
-        """Whether the body takes a push over its current advance (``_take_push``)."""
-        return self._push_span is not None
+        n = self.model.n_surface
+        v = st.v.numpy()
+        v[:n] += (st.push / self.masses[:n, None]).astype(np.float32)
+        st.v.assign(v)
+        st.push = np.zeros_like(st.push)
 
     @property
     def coupling_impulse(self) -> np.ndarray:
@@ -672,8 +647,6 @@ class PbdBody(Body):
         self._own_surface: _OwnSurface | None = None  # this body's surface, while there are moving ones
         self._surface_closed: bool | None = None  # whether it can keep other bodies' vertices out
         self._batch = None  # the PbdBatch that steps this body with others (``wsim.pbd.batch``), if any
-        self._push_acc: wp.array | None = None  # a push taken over an advance (``_take_push``), once pushed
-        self._push_span: tuple[float, float] | None = None  # the advance it is taken over
 
     def attach_colliders(self, surfaces: Surfaces) -> None:
         self._surfaces = surfaces
@@ -776,7 +749,7 @@ class PbdBody(Body):
         return batches(bodies)
 
     def advance(self, t0: float, t1: float) -> None:
-        self._take_push(t0, t1)
+        self._take_push()
         self._advance_frame(t0, t1)
 
     def _advance_frame(self, t0: float, t1: float) -> None:
@@ -957,8 +930,6 @@ class PbdBody(Body):
         m = self.model
         n = m.n_particles
         k = len(self._handle_idx)
-        if self._push_acc is not None:
-            wp.launch(kp.add_push, dim=self._push_acc.shape[0], inputs=[self.v, self._push_acc, h])
         wp.launch(
             kp.predict_positions,
             dim=n,
