@@ -176,15 +176,6 @@ def handle_targets(
 
 
 @wp.kernel
-def add_push(v: wp.array(dtype=wp.vec3), push_acc: wp.array(dtype=wp.vec3), h: float):
-    """v_i += h a_i: the push another method's body handed particle i over the last coupling
-    interval (J_i), taken as the constant force J_i / T over this one (a_i = J_i / (m_i T)), as BEM
-    and EoL bodies take theirs; launched before ``predict_positions`` each substep."""
-    i = wp.tid()
-    v[i] = v[i] + push_acc[i] * h
-
-
-@wp.kernel
 def predict_positions(
     # state in/out
     x: wp.array(dtype=wp.vec3),

@@ -94,66 +94,6 @@ def test_linear_momentum_conserved_without_external_forces(device, tets):
     assert np.abs(r_now - r_rest).max() > 1e-3
 
 
-@pytest.mark.parametrize("batched", [False, True], ids=["one", "batch"])
-def test_a_continuing_push_is_taken_as_a_constant_force_over_the_next_advance(device, batched):
-    """``PbdBody.add_vertex_impulses`` (what an EoL body pushed the surface with): a first push is
-    taken at once at the next advance's start, and the centre of mass then moves (P / M) T over
-    its S substeps; the same push again (continuing it) is taken as forces J / T over the advance (``kernels.pbd.add_push`` each substep), and the centre moves (P / M) T on, plus
-    (P / M) T (S + 1) / (2 S) (symplectic Euler under a constant force; the internal constraints
-    move no centre of mass). The momentum changes by each push exactly, and the advance after
-    moves the centre on at 2 P / M. ``batched``: a second, identical body makes the two a
-    ``PbdBatch``; the pushed one steps on its own while it spreads a push."""
-    world = wsim.World(gravity=(0.0, 0.0, 0.0), device=device)
-    bodies = [world.add(wsim.PbdBody(sphere(0.2, 1), name=f"b{k}", position=(k * 1.0, 0.0, 0.0), tets="auto"))
-              for k in range(2 if batched else 1)]
-    body = bodies[0]
-    world.step()  # bound, at rest
-    assert (body._batch is not None) is batched
-    n, T = body.model.n_surface, world.frame_dt
-    S = body.substeps_for(T)
-    rng = np.random.default_rng(3)
-    J = body.masses[:n, None] * (np.array([0.3, -0.1, 0.05]) + 0.05 * rng.standard_normal((n, 3)))
-    P, M = J.sum(axis=0), body.mass
-    U = P / M * T  # how far the centre moves in an advance at P / M
-    for k, spread in ((1, False), (2, True)):
-        c0 = body.center_of_mass()
-        body.add_vertex_impulses(J, T)
-        world.step()
-        assert body.spreads_push is spread
-        assert np.linalg.norm(momentum(body)[0] - k * P) < 1e-4 * np.linalg.norm(P)
-        expected = (k - 1) * U + (U * (S + 1) / (2 * S) if spread else U)
-        assert np.linalg.norm(body.center_of_mass() - c0 - expected) < 1e-3 * np.linalg.norm(U), k
-    assert S > 1
-    c1 = body.center_of_mass()
-    world.step()  # nothing more to take
-    assert not body.spreads_push
-    assert np.linalg.norm(momentum(body)[0] - 2 * P) < 1e-4 * np.linalg.norm(P)
-    assert np.linalg.norm(body.center_of_mass() - c1 - 2 * U) < 2e-3 * np.linalg.norm(U)
-    if batched:  # the other member took none
-        assert np.linalg.norm(momentum(bodies[1])[0]) < 1e-6
-
-
-def test_a_frame_stepped_again_after_a_restore_takes_no_stale_push(tmp_path):
-    """A checkpoint saved before a push was handed over holds none: after a restore the frame
-    stepped again takes nothing (the acceleration a continuing push was being taken with is not
-    kept; the advance's span alone would match it again)."""
-    world = wsim.World(gravity=(0.0, 0.0, 0.0), device="cpu")
-    body = world.add(wsim.PbdBody(sphere(0.2, 1), name="b", tets="auto"))
-    world.step()
-    n = body.model.n_surface
-    J = np.tile([0.01, 0.0, 0.0], (n, 1))
-    body.add_vertex_impulses(J, world.frame_dt)
-    world.step()  # taken at once
-    saved = world.checkpoint(tmp_path / "pushed_once.h5")
-    body.add_vertex_impulses(J, world.frame_dt)
-    world.step()  # continuing: spread
-    assert body.spreads_push
-    assert momentum(body)[0][0] > 2 * 0.01 * n * 0.999
-    world.restore(saved)
-    world.step()
-    assert abs(momentum(body)[0][0] - 0.01 * n) < 1e-4 * 0.01 * n
-
-
 def test_spin_loss_is_first_order_in_the_substep():
     """Plain XPBD (``conserve_angular_momentum=False``; the default restores it) with symplectic Euler is not angular-momentum conserving: the straight-line prediction of a
     rotating particle is projected back radially, losing about omega^2 h of the spin per second

@@ -34,7 +34,7 @@ if TYPE_CHECKING:
     from wsim.world import World
 
 FORMAT = "wsim-checkpoint"
-FORMAT_VERSION = 7  # 2: BEM and EoL states carry the coupling impulses still to deliver (issue 18); 3: and EoL the push rates of its yielding partners; 4: EoL bodies touch in one QP (no push rates); EoL signatures now carry the material and plasticity (a version-4 file of an EoL body is refused by its signature, naming them; files of other bodies still load); 5: EoL states carry the push handed to each yielding partner over the last interval (the partner yields to its change only); 6: and PBD states too (with the contacts of the last iteration on each partner); 7: PBD states carry the total of the push taken last (whether the next is steady)
+FORMAT_VERSION = 6  # 2: BEM and EoL states carry the coupling impulses still to deliver (issue 18); 3: and EoL the push rates of its yielding partners; 4: EoL bodies touch in one QP (no push rates); EoL signatures now carry the material and plasticity (a version-4 file of an EoL body is refused by its signature, naming them; files of other bodies still load); 5: EoL states carry the push handed to each yielding partner over the last interval (the partner yields to its change only); 6: and PBD states too (with the contacts of the last iteration on each partner)
 
 
 def scene_description(world: World) -> dict[str, Any]:

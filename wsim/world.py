@@ -758,35 +758,17 @@ def _couple_surfaces(pusher: Body, targets: Sequence[Body], index: dict[int, int
                 rigid = (b.mass, b.center_of_mass(), b.world_inertia())
                 if hasattr(b, "constraint_begin"):  # a BEM body: it yields elastically too (``_impedance``)
                     rigid = rigid + (_impedance(b), _wave_speed(b) if id(b) in implicit else 0.0)
-                elif b.spreads_push:  # a PBD body taking a continuing push over this interval's substeps
-                    rigid = rigid + (_PBD_IMPEDANCE,)
             surfaces.append((index[id(b)], p0, p1, b.faces, mu, b.vertex_masses() if kept else None, rigid))
     pusher.set_moving_surfaces(surfaces)
-
-
-#: the impedance an EoL pusher takes a PBD body's surface to have while the body takes the push of
-#: the interval before over this one's substeps (``PbdBody.spreads_push``: a continuing push, several
-#: substeps an interval; otherwise it takes it at once and the rows yield to the whole push):
-#: infinite, no elastic give, but as for a BEM body the rows count the change of their push only.
-#: Measured (CPU, 2026-11-28; a 3.5 kg EoL ball, 6 cells, on a soft 1.2 kg PBD box, E = 5e5 Pa, 100
-#: fps; the ball's mean / peak speed over the second second [mm/s], its lowest point below the box's
-#: highest [mm]): at intervals of 10 substeps (``coupling_dt`` the frame), the push spread and the
-#: whole push yielded to 99 / 256 and 30 mm (the ball rolled 95 mm); the change counted (this) 33 /
-#: 79 and 5.6 mm; with the box's elastic give (rho c_p) as well 33 / 69 and 10 mm, and at 1 substep
-#: an interval 25 / 50 and 11 mm against 12 / 32 and 3.9 mm. At one substep an interval counting the
-#: change sank an 8 kg PBD cube on an 8 kg EoL box 0.24 mm over 3 s, against 0.04 (there the body
-#: takes every push at once)
-_PBD_IMPEDANCE = math.inf
 
 
 def _impedance(body: Body) -> float:
     """rho c_p of a BEM body's material [kg / (m^2 s)] (inf: incompressible): how stiffly its
     surface resists a push over a short time (``EolBody._elastic_give``). A BEM body takes a push
     as point forces spread over the next interval, so an EoL pusher also counts only the change of
-    its push (``kernels.eol_contact.partner_yield``). Not for PBD bodies (``_PBD_IMPEDANCE``): with
-    the change of the push and its elastic give, while PBD bodies took a push at once, an 8 kg PBD
-    box resting on an 8 kg EoL box sank 0.36-0.48 mm over 2 s and shook at 2.4-5.1 mm/s (0.001 mm
-    and 1.6-1.7 mm/s without)."""
+    its push (``kernels.eol_contact.partner_yield``). Not for PBD bodies, which take a push at
+    once: with the change of the push (elastic give or not), an 8 kg PBD box resting on an 8 kg EoL
+    box sank 0.36-0.48 mm over 2 s and shook at 2.4-5.1 mm/s (0.001 mm and 1.6-1.7 mm/s without)."""
     material = body.material
     return float(material.rho * material.c1)
 

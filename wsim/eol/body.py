@@ -1006,7 +1006,7 @@ class EolBody(VertexImpulses, Body):
                 ms.rigid = (1.0 / float(M), np.linalg.inv(np.asarray(inertia, dtype=np.float64)),
                             np.asarray(com, dtype=np.float64), (ms.p1_host - ms.p0_host).mean(axis=0))
                 start = ms.rigid[2] - ms.rigid[3]  # its centre of mass at the start
-                if ms.impedance is None:  # it yields to the whole push (it takes it at once: a PBD body of one substep an interval)
+                if ms.impedance is None:  # it yields to the whole push (it takes it at once, a PBD body)
                     last = None
                 ms.received = ((last.sum(axis=0), np.cross(p0 - start, last).sum(axis=0)) if last is not None
                                else (np.zeros(3), np.zeros(3)))

@@ -104,7 +104,6 @@ class PbdBatch:
         self._handle_idx = np.zeros(0, dtype=np.int64)
         self._mesh_colliders: list = []
         self._contact_mesh = None
-        self._push_acc = None  # a member taking a push steps on its own (``advance``)
         self._moving: list = []
         self._own_surface = None
         self._layout: tuple[int, float] | None = None
@@ -200,8 +199,8 @@ class PbdBatch:
         """Every member from t0 to t1: the batch's frame (recorded as one CUDA graph on a GPU), or
         each member on its own in a frame where one touches something (``steps_together``)."""
         for b in self.bodies:  # what EoL bodies pushed them with (``PbdBody.add_vertex_impulses``)
-            b._take_push(t0, t1)
-        if not self.steps_together() or any(b.spreads_push for b in self.bodies):  # a push: the member's own launches
+            b._take_push()
+        if not self.steps_together():
             for b in self.bodies:
                 b.advance(t0, t1)
             return

@@ -52,13 +52,10 @@ class PbdState:
 
     x: wp.array
     v: wp.array
-    # momentum an EoL body pushed the surface particles with, to be taken at the next advance
+    # momentum an EoL body pushed the surface particles with, to be taken at the next step's start
     # (``add_vertex_impulses``) [N s] (V, 3), and all it has handed so far [N s] (3,)
     push: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     coupling_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    # the total of the push taken at the last advance (zero: none) [N s] (3,): whether the next
-    # continues it (``PbdBody._take_push``)
-    push_taken: np.ndarray = field(default_factory=lambda: np.zeros(3))
     # (n, 4) the push this body handed each yielding moving surface over the last interval, rows
     # (key, J) per vertex: the partner takes it over the next one, and yields to its change only
     # (``set_moving_surfaces``)
@@ -528,11 +525,12 @@ class PbdBody(Body):
     def add_vertex_impulses(self, impulses: Any, duration: float) -> None:
         """Deliver momentum ``impulses`` [N s] (V, 3) per surface vertex (world axes): the World
         hands a PBD body what an EoL body pushed it with over the last coupling interval (the EoL
-        QP takes the PBD body's rigid give, ``EolBody.set_moving_surfaces``). The body takes it
-        at its next advance (pinned and driven particles take none): at once at its start, or,
-        where a push continues the last one over an advance of several substeps, as constant
-        forces J / T over them (``_take_push``). ``duration`` [s] is the interval it was pushed over (checked, as
-        for the other methods)."""
+        QP takes the PBD body's rigid give, ``EolBody.set_moving_surfaces``). It is taken at the
+        start of the body's next step, each surface particle's velocity changing by J / m at once
+        (pinned and driven particles take none), so that the velocities read between steps are
+        those the step ended with (taken at once, a box resting on an EoL box read g h = 9.8 mm/s
+        upward at 1 ms intervals). ``duration`` [s] is that interval (checked, as for the other
+        methods)."""
         self._require_bound()
         n = self.model.n_surface
         J = checked_vertex_impulses(self.name, impulses, n, duration)
@@ -540,69 +538,16 @@ class PbdBody(Body):
         self.state.push = self.state.push + J
         self.state.coupling_impulse = self.state.coupling_impulse + J.sum(axis=0)
 
-    def _take_push(self, t0: float, t1: float) -> None:
-        """Take the pending push (``add_vertex_impulses``) at the advance from t0 to t1.
-
-        A push that continues one taken at the last advance (resting contact), over an advance
-        of several substeps, becomes the surface particles' constant accelerations J / (m T)
-        (``kernels.pbd.add_push`` each substep; exact in momentum), and the EoL rows then count
-        the change of their push only (``spreads_push``; ``wsim.world._PBD_IMPEDANCE``). A first
-        push (an impact), or any over one substep, changes the velocities at once at the
-        advance's start, and the rows yield to the whole push. Taken at once, a resting push is
-        answered by the body's contacts within the interval, so its velocities read at frame
-        ends carry that answer: a 1.2 kg box under a 3.5 kg EoL ball on a BEM cube read +13 mm/s
-        upward at rest at 2 substeps an interval (0.01 spread). Spread, an impact's push reached
-        the body too slowly: the EoL body, still closing, pushed again, and a PBD cube hit by an
-        EoL cube three times its mass at 0.5 m/s, 10 substeps an interval, came away with 3.1
-        times the kinetic energy (an independent check; 0.38 with the first push at once). A push
-        spread only while it stayed within half of the last one let most resting pushes at 10
-        substeps an interval, which vary more, go at once. Called again for the same advance it
-        changes nothing. The acceleration array is made on the first spread push (a body never
-        pushed so launches nothing more) and stays: recorded frames include its launch from then
-        on."""
+    def _take_push(self) -> None:
+        """Add the pending push (``add_vertex_impulses``) to the surface particles' velocities."""
         st = self.state
-        if st is None:
+        if st is None or not np.any(st.push):
             return
-        if np.any(st.push):
-            n = self.model.n_surface
-            total = st.push.sum(axis=0)
-            continuing = self.substeps_for(round(t1 - t0, 12)) > 1 and bool(np.any(st.push_taken))
-            st.push_taken = total
-            self._taken_at = (t0, t1)
-            if continuing:
-                if self._push_acc is None:
-                    self._push_acc = wp.zeros(n, dtype=wp.vec3, device=self._device)
-                    self._graph = None  # the frame's launches change
-                T = max(float(t1 - t0), 1e-300)
-                self._push_acc.assign((st.push / (self.masses[:n, None] * T)).astype(np.float32))
-                self._push_span = (t0, t1)
-            else:
-                self._stop_spreading()
-                v = st.v.numpy()
-                v[:n] += (st.push / self.masses[:n, None]).astype(np.float32)
-                st.v.assign(v)
-            st.push = np.zeros_like(st.push)
-        elif self._taken_at != (t0, t1):  # an advance with no push
-            self._stop_spreading()
-            self._taken_at = None
-            st.push_taken = np.zeros(3)
-
-    def _stop_spreading(self) -> None:
-        if self._push_span is not None:
-            self._push_acc.zero_()
-            self._push_span = None
-
-    def _state_loaded(self) -> None:
-        """After a restore: no push is being taken (the state's pending one is taken at the next
-        advance; an interval stepped again must not keep the acceleration it had)."""
-        self._stop_spreading()
-        self._taken_at = None
-
-    @property
-    def spreads_push(self) -> bool:
-        """Whether the body takes a push as constant forces over its current advance
-        (``_take_push``)."""
-        return self._push_span is not None
+        n = self.model.n_surface
+        v = st.v.numpy()
+        v[:n] += (st.push / self.masses[:n, None]).astype(np.float32)
+        st.v.assign(v)
+        st.push = np.zeros_like(st.push)
 
     @property
     def coupling_impulse(self) -> np.ndarray:
@@ -702,9 +647,6 @@ class PbdBody(Body):
         self._own_surface: _OwnSurface | None = None  # this body's surface, while there are moving ones
         self._surface_closed: bool | None = None  # whether it can keep other bodies' vertices out
         self._batch = None  # the PbdBatch that steps this body with others (``wsim.pbd.batch``), if any
-        self._push_acc: wp.array | None = None  # a push taken over an advance (``_take_push``), once pushed
-        self._push_span: tuple[float, float] | None = None  # the advance it is taken over
-        self._taken_at: tuple[float, float] | None = None  # the advance that took the last push
 
     def attach_colliders(self, surfaces: Surfaces) -> None:
         self._surfaces = surfaces
@@ -807,7 +749,7 @@ class PbdBody(Body):
         return batches(bodies)
 
     def advance(self, t0: float, t1: float) -> None:
-        self._take_push(t0, t1)
+        self._take_push()
         self._advance_frame(t0, t1)
 
     def _advance_frame(self, t0: float, t1: float) -> None:
@@ -988,8 +930,6 @@ class PbdBody(Body):
         m = self.model
         n = m.n_particles
         k = len(self._handle_idx)
-        if self._push_acc is not None:
-            wp.launch(kp.add_push, dim=self._push_acc.shape[0], inputs=[self.v, self._push_acc, h])
         wp.launch(
             kp.predict_positions,
             dim=n,

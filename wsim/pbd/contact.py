@@ -148,7 +148,7 @@ def advance_together(bodies: Sequence[PbdBody], t0: float, t1: float, graphs: di
     where the caller keeps the recorded lockstep frame and the broad phase's layout between calls
     (None: nothing kept, no frame recorded)."""
     for b in bodies:  # what EoL bodies pushed them with (``PbdBody.add_vertex_impulses``)
-        b._take_push(t0, t1)
+        b._take_push()
     frame_dt = round(t1 - t0, 12)
     pairs = candidate_pairs(bodies, frame_dt, graphs)
     touching = {id(b) for pair in pairs for b in pair}
@@ -175,8 +175,7 @@ def advance_together(bodies: Sequence[PbdBody], t0: float, t1: float, graphs: di
     device = group[0]._device
     mus = [pair_friction(getattr(a, "friction", None), getattr(b, "friction", None)) for a, b in pairs]
     key = (tuple(id(b) for b in group), tuple((id(a), id(b)) for a, b in pairs), substeps, h,
-           tuple((ms.key, ms.mesh.id) for b in group for ms in b._moving),  # other methods' surfaces too
-           tuple(b._push_acc is not None for b in group))  # pushes' launches (``PbdBody._take_push``)
+           tuple((ms.key, ms.mesh.id) for b in group for ms in b._moving))  # other methods' surfaces too
     use_graph = graphs is not None and device.is_cuda and all(b.use_graph for b in group)
     with wp.ScopedDevice(device):
         for b in group:
