@@ -324,17 +324,19 @@ class World:
         # without gravity the answer is always that the EoL bodies push: no PBD body is read; with
         # it only PBD bodies lighter than an EoL body can change it (``_eol_pushes_pbd``)
         pbd = [p for p in self._pbd if g > 0.0 and _mass(p) < max(float(e.mass) for e in self._eol)]
-        pbd_boxes = [_reach_box(p, _points_of(p, points), interval, g, getattr(p, "contact_margin", None) or 0.0)
-                     for p in pbd]
+        # the rule's reach boxes (each body's contact margin, no cell), made once an interval for
+        # every group and part asked (a PBD body's reads its velocities back from the device)
+        rule_boxes: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         eol_pushes = dict(self._eol_pushes)
 
         def near(group: list[Body]) -> list[Body]:  # the PBD bodies in the group's reach
-            return [p for p, pb in zip(pbd, pbd_boxes) if any(_overlap(pb, boxes[id(e)]) for e in group)]
+            return [p for p in pbd if any(_overlap(_rule_box(p, points, rule_boxes, interval, g), boxes[id(e)])
+                                          for e in group)]
 
         def answer(group: list[Body]) -> bool:
             close = near(group)
             if close or g == 0.0:
-                return _eol_pushes_pbd(close, group, self.gravity, interval, points)
+                return _eol_pushes_pbd(close, group, self.gravity, interval, points, rule_boxes)
             return eol_pushes[id(group[0])]  # nothing to push: as before (its one answer, or the first's)
 
         groups = []
@@ -875,6 +877,16 @@ def _points_of(body: Body, points: dict[int, np.ndarray]) -> np.ndarray:
     return points[id(body)]
 
 
+def _rule_box(body: Body, points: dict[int, np.ndarray], boxes: dict[int, tuple[np.ndarray, np.ndarray]],
+              interval: float, g: float) -> tuple[np.ndarray, np.ndarray]:
+    """``body``'s reach box over the interval with its contact margin (``_reach_box``), made once
+    into ``boxes`` (by id): the boxes ``_eol_pushes_pbd`` asks whether bodies meet by."""
+    if id(body) not in boxes:
+        boxes[id(body)] = _reach_box(body, _points_of(body, points), interval, g,
+                                     getattr(body, "contact_margin", None) or 0.0)
+    return boxes[id(body)]
+
+
 def _touching(bodies: Sequence[Body], interval: float, g: float, points: dict[int, np.ndarray],
               reach: dict[int, tuple[np.ndarray, np.ndarray]] | None = None, cells: float = 1.0) -> list[list[Body]]:
     """EoL bodies that may touch each other within the coming interval, as groups (connected
@@ -924,7 +936,8 @@ def _overlap(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray])
 
 
 def _eol_pushes_pbd(pbd: Sequence[Body], eol: Sequence[Body], gravity: np.ndarray | None = None,
-                    interval: float = 0.0, points: dict[int, np.ndarray] | None = None) -> bool:
+                    interval: float = 0.0, points: dict[int, np.ndarray] | None = None,
+                    boxes: dict[int, tuple[np.ndarray, np.ndarray]] | None = None) -> bool:
     """Whether EoL bodies push PBD bodies over the coming coupling interval (else PBD bodies push
     EoL bodies). The pushed body takes its momentum one interval late, and the pusher keeps
     itself out of the other: the EoL QP's rows take a PBD partner's give, a PBD body's particles
@@ -983,20 +996,17 @@ def _eol_pushes_pbd(pbd: Sequence[Body], eol: Sequence[Body], gravity: np.ndarra
     if not pbd or not eol or g == 0.0:
         return True
     up = -np.asarray(gravity, dtype=np.float64) / g
-    points = {} if points is None else points  # each body's points and reach box read once, when needed
-    boxes: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    # each body's points and reach box read once, when needed (``points``, ``boxes``: shared by the caller)
+    points = {} if points is None else points
+    boxes = {} if boxes is None else boxes
 
     def at(b: Body) -> np.ndarray:
         return _points_of(b, points)
 
-    def box(b: Body) -> tuple[np.ndarray, np.ndarray]:
-        if id(b) not in boxes:
-            boxes[id(b)] = _reach_box(b, at(b), interval, g, getattr(b, "contact_margin", None) or 0.0)
-        return boxes[id(b)]
-
     def rests(a: Body, b: Body) -> bool:  # a's lowest point above b's middle height, within reach
         h = at(b) @ up
-        return float((at(a) @ up).min()) > 0.5 * float(h.min() + h.max()) and _overlap(box(a), box(b))
+        return (float((at(a) @ up).min()) > 0.5 * float(h.min() + h.max())
+                and _overlap(_rule_box(a, points, boxes, interval, g), _rule_box(b, points, boxes, interval, g)))
 
     masses = {id(p): _mass(p) for p in pbd}
     pbd_rests = False
